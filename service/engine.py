@@ -1,0 +1,300 @@
+"""The engine: recognise a registered object in a cloud and estimate its pose.
+
+``Engine.align`` is the paper's chain, one step per line: normalise -> map to 2-D
+(ONNX) -> grid -> classify -> hypothesise poses from mapped pairs and principal
+axes -> verify by the alignment error -> refine with ICP -> measure the fit.
+The gallery is an immutable snapshot swapped whole on every change, so any
+number of threads may align while one registers or removes a reference.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from service.alignment import alignment_error
+from service.classifier import LinearClassifier
+from service.errors import EmptyGallery, UnknownReference
+from service.gallery import Reference
+from service.grid import grid
+from service.hypotheses import Hypothesis, hypothesise
+from service.icp import icp
+from service.mapping import Mapper
+from service.normalize import normalize, radius, subsample
+from service.settings import EngineSettings
+
+
+@dataclass
+class CandidateFit:
+    label: str
+    score: float
+    alignment_error: float
+    alignment_error_normalized: float
+    hypothesis: str
+
+
+@dataclass
+class Alignment:
+    label: str
+    score: float
+    rotation: np.ndarray  # (3, 3): scene = R @ model + t
+    translation: np.ndarray  # (3,)
+    alignment_error: float
+    alignment_error_normalized: float
+    hypothesis: str  # the source of the winning hypothesis
+    candidates: list[CandidateFit]
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Entry:
+    """A reference with the search trees built once at registration or load."""
+
+    reference: Reference
+    point_tree: cKDTree
+    mapped_tree: cKDTree
+
+    @classmethod
+    def of(cls, reference: Reference) -> Entry:
+        return cls(reference, cKDTree(reference.points), cKDTree(reference.mapped))
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    entries: dict[str, Entry]
+    classifier: LinearClassifier | None
+
+
+class Stopwatch:
+    """Milliseconds per step, in the order the steps ran."""
+
+    def __init__(self):
+        self.timings: dict[str, float] = {}
+        self.began = self.last = time.perf_counter()
+
+    def lap(self, step: str) -> None:
+        now = time.perf_counter()
+        self.timings[step] = self.timings.get(step, 0.0) + (now - self.last) * 1e3
+        self.last = now
+
+    def total(self) -> dict[str, float]:
+        self.timings["total"] = (time.perf_counter() - self.began) * 1e3
+        return {k: round(v, 3) for k, v in self.timings.items()}
+
+
+class Engine:
+    def __init__(self, mapper: Mapper, settings: EngineSettings | None = None):
+        self.mapper = mapper
+        self.settings = settings or EngineSettings()
+        self._snapshot = Snapshot({}, None)
+        self._write_lock = threading.Lock()
+
+    # --- the gallery -------------------------------------------------------------
+
+    def make_reference(self, name: str, points: np.ndarray, seed: int | None = None) -> Reference:
+        """Compute what the engine needs of a new object: mapped points, view grids, scale."""
+        points = np.asarray(points, dtype=np.float32)
+        mapped = self.map(points)
+        rng = np.random.default_rng(self.settings.seed if seed is None else seed)
+        views = [self.view_grid(points, rng) for _ in range(self.settings.view_grids)]
+        return Reference(name, points, mapped, np.stack(views), radius(points))
+
+    def view_grid(self, points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The grid of an augmented view: a random pose and 10-100 % of the points kept."""
+        count = min(len(points), self.settings.network_points)
+        keep = max(16, int(count * rng.uniform(0.1, 1.0)))
+        view = points[subsample(points, keep, rng)] @ Rotation.random(random_state=rng).as_matrix()
+        return grid(self.map(view))
+
+    def load(self, references: list[Reference]) -> None:
+        with self._write_lock:
+            self._publish({r.name: Entry.of(r) for r in references})
+
+    def add(self, reference: Reference) -> None:
+        entry = Entry.of(reference)
+        with self._write_lock:
+            self._publish({**self._snapshot.entries, reference.name: entry})
+
+    def remove(self, name: str) -> None:
+        with self._write_lock:
+            if name not in self._snapshot.entries:
+                raise UnknownReference(f"no reference named {name!r}")
+            self._publish({k: v for k, v in self._snapshot.entries.items() if k != name})
+
+    def _publish(self, entries: dict[str, Entry]) -> None:
+        """Refit the classifier on every reference's view grids and swap the snapshot."""
+        classifier = None
+        if entries:
+            classifier = LinearClassifier.fit(
+                list(entries),
+                [e.reference.view_grids for e in entries.values()],
+                self.settings.classifier_ridge,
+            )
+        self._snapshot = Snapshot(entries, classifier)
+
+    def names(self) -> list[str]:
+        return list(self._snapshot.entries)
+
+    def get(self, name: str) -> Reference | None:
+        entry = self._snapshot.entries.get(name)
+        return entry.reference if entry else None
+
+    def __len__(self) -> int:
+        return len(self._snapshot.entries)
+
+    def entry(self, name: str) -> Entry:
+        """A reference with its search trees (for evaluation and diagnostics)."""
+        try:
+            return self._snapshot.entries[name]
+        except KeyError:
+            raise UnknownReference(f"no reference named {name!r}") from None
+
+    def recognise(self, mapped: np.ndarray) -> tuple[str, float]:
+        """Step 3 alone: the label eq. (4) gives a mapped cloud, and its score."""
+        classifier = self._snapshot.classifier
+        if classifier is None:
+            raise EmptyGallery("no reference is registered: register one with POST /references")
+        scores = classifier.scores(grid(mapped))
+        best = int(np.argmax(scores))
+        return classifier.labels[best], float(scores[best])
+
+    # --- the chain ---------------------------------------------------------------
+
+    def map(self, points: np.ndarray) -> np.ndarray:
+        """Normalise a cloud as training did and map it to 2-D."""
+        return self.mapper.map(normalize(points, self.mapper.canonical).points)
+
+    def align(
+        self,
+        points: np.ndarray,
+        candidates: list[str] | None = None,
+        top_k: int | None = None,
+        refine: bool = True,
+        hypotheses: tuple[str, ...] | None = None,
+    ) -> Alignment:
+        snapshot, settings = self._snapshot, self.settings
+        if not snapshot.entries:
+            raise EmptyGallery("no reference is registered: register one with POST /references")
+        allowed = self._candidate_rows(snapshot, candidates)
+        rng = np.random.default_rng(settings.seed)
+        clock = Stopwatch()
+        scene = np.asarray(points, dtype=np.float64)
+
+        # 1. Normalise: subsample to the network's size (centring, scaling in map()).
+        observed = scene[subsample(scene, settings.network_points, rng)]
+        clock.lap("normalize")
+        # 2. Map every point to 2-D with the network.
+        observed_mapped = self.map(observed)
+        clock.lap("map")
+        # 3. Grid and classify (eq. 4); keep the top_k candidates.
+        scores = snapshot.classifier.scores(grid(observed_mapped))
+        ranked = allowed[np.argsort(-scores[allowed], kind="stable")]
+        shortlist = ranked[: top_k or settings.top_k]
+        clock.lap("classify")
+
+        verify = observed[subsample(observed, settings.verify_points, rng)]
+        refine_on = observed[subsample(observed, settings.icp_points, rng)]
+        labels = snapshot.classifier.labels
+        best: tuple[float, str, Hypothesis] | None = None
+        fits = []
+        for row in shortlist:
+            entry = snapshot.entries[labels[row]]
+            reference = entry.reference
+            # 4. Hypothesise poses: mapped pairs (RANSAC), principal axes, the paper's solver.
+            candidates_poses = hypothesise(
+                hypotheses or settings.hypotheses,
+                observed,
+                observed_mapped,
+                reference.points,
+                entry.mapped_tree,
+                settings.ransac_threshold * reference.scale,
+                settings.ransac_iterations,
+                rng,
+            )
+            clock.lap("hypothesise")
+            # 5. Verify each cheaply by the alignment error on a small subsample.
+            errors = [
+                alignment_error(verify, entry.point_tree, h.rotation, h.translation)
+                for h in candidates_poses
+            ]
+            order = np.argsort(errors)[: settings.refine_best]
+            clock.lap("verify")
+            # 6. Refine the best few with ICP, and keep the best fit.
+            for index in order:
+                hypothesis = candidates_poses[index]
+                error = errors[index]
+                if refine:
+                    rotation, translation = icp(
+                        refine_on,
+                        reference.points,
+                        entry.point_tree,
+                        hypothesis.rotation,
+                        hypothesis.translation,
+                        settings.icp_iterations,
+                    )
+                    hypothesis = Hypothesis(rotation, translation, hypothesis.source)
+                    error = alignment_error(verify, entry.point_tree, rotation, translation)
+                fits.append((error, labels[row], hypothesis, float(scores[row])))
+                if best is None or error < best[0]:
+                    best = (error, labels[row], hypothesis)
+            clock.lap("refine")
+
+        # 7. Measure the fit of the winner on every observed point.
+        _, label, winner = best
+        winner_entry = snapshot.entries[label]
+        error = alignment_error(scene, winner_entry.point_tree, winner.rotation, winner.translation)
+        clock.lap("measure")
+        scale = winner_entry.reference.scale
+        per_label: dict[str, CandidateFit] = {}
+        for fit_error, fit_label, hypothesis, score in sorted(fits, key=lambda f: f[0]):
+            if fit_label not in per_label:
+                fit_scale = snapshot.entries[fit_label].reference.scale
+                per_label[fit_label] = CandidateFit(
+                    fit_label, score, fit_error, fit_error / fit_scale, hypothesis.source
+                )
+        return Alignment(
+            label=label,
+            score=float(scores[labels.index(label)]),
+            rotation=winner.rotation,
+            translation=winner.translation,
+            alignment_error=error,
+            alignment_error_normalized=error / scale,
+            hypothesis=winner.source,
+            candidates=list(per_label.values()),
+            timings_ms=clock.total(),
+        )
+
+    @staticmethod
+    def _candidate_rows(snapshot: Snapshot, candidates: list[str] | None) -> np.ndarray:
+        labels = snapshot.classifier.labels
+        if not candidates:
+            return np.arange(len(labels))
+        unknown = [name for name in candidates if name not in snapshot.entries]
+        if unknown:
+            raise UnknownReference(f"unknown candidate reference(s): {', '.join(unknown)}")
+        return np.array(sorted({labels.index(name) for name in candidates}))
+
+    def self_check(self, reference: Reference, poses: int = 3) -> list[dict]:
+        """Align the reference against a few random poses of itself, as an operator would."""
+        rng = np.random.default_rng(self.settings.seed + 1)
+        checks = []
+        for _ in range(poses):
+            rotation = Rotation.random(random_state=rng).as_matrix()
+            translation = rng.uniform(-1, 1, 3) * reference.scale
+            chosen = subsample(reference.points, self.settings.network_points, rng)
+            scene = reference.points[chosen] @ rotation.T + translation
+            result = self.align(scene)
+            error = np.clip((np.trace(result.rotation.T @ rotation) - 1) / 2, -1, 1)
+            checks.append(
+                {
+                    "label_ok": result.label == reference.name,
+                    "rotation_error_deg": float(np.degrees(np.arccos(error))),
+                    "alignment_error_normalized": result.alignment_error_normalized,
+                }
+            )
+        return checks

@@ -1,0 +1,39 @@
+"""Step 5b: refine a pose with point-to-point ICP against the reference's tree.
+
+Each iteration pairs every observed point with its nearest reference point at
+the current pose, drops pairs farther than ``trim`` times the median distance
+(so parts of the scene the reference does not explain pull less), and solves
+Kabsch on the rest. Stops when the pose no longer moves.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from service.alignment import to_model_frame
+from service.registration import kabsch
+
+
+def icp(
+    scene: np.ndarray,
+    reference_points: np.ndarray,
+    reference_tree: cKDTree,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    iterations: int = 20,
+    trim: float = 3.0,
+    tolerance: float = 1e-6,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The pose ``scene = R @ model + t`` refined from the given one."""
+    for _ in range(iterations):
+        distance, nearest = reference_tree.query(to_model_frame(scene, rotation, translation), k=1)
+        keep = distance <= trim * max(float(np.median(distance)), 1e-12)
+        if keep.sum() < 3:
+            break
+        new_rotation, new_translation = kabsch(reference_points[nearest[keep]], scene[keep])
+        moved = np.abs(new_rotation - rotation).max() + np.abs(new_translation - translation).max()
+        rotation, translation = new_rotation, new_translation
+        if moved < tolerance:
+            break
+    return rotation, translation

@@ -1,0 +1,62 @@
+"""Step 2 of the chain: map every point to 2-D with the exported network (onnxruntime).
+
+The CUDA execution provider is used when onnxruntime-gpu and a GPU are present and
+``use_cuda`` is set, the CPU provider otherwise. How the network expects its input
+(principal-axes frame or not) travels inside the ONNX file as metadata, so a model
+and its preprocessing cannot be separated.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from service.settings import ModelSettings
+
+INPUT_NAME = "points"  # (1, N, 3) float32, normalised
+OUTPUT_NAME = "mapped"  # (1, N, 2) float32
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+class Mapper:
+    """The DPC-MN network: normalised (N, 3) points to (N, 2) mapped coordinates."""
+
+    def __init__(
+        self,
+        path: Path,
+        intra_op_threads: int = 2,
+        inter_op_threads: int = 1,
+        use_cuda: bool = True,
+    ):
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = intra_op_threads
+        options.inter_op_num_threads = inter_op_threads
+        providers = ["CPUExecutionProvider"]
+        if use_cuda and "CUDAExecutionProvider" in ort.get_available_providers():
+            providers.insert(0, "CUDAExecutionProvider")
+        self.path = Path(path)
+        self.session = ort.InferenceSession(str(path), options, providers=providers)
+        self.providers: list[str] = self.session.get_providers()
+        self.model_hash = file_sha256(self.path)
+        metadata = self.session.get_modelmeta().custom_metadata_map
+        self.canonical = metadata.get("canonical", "false") == "true"
+        self.metadata = dict(metadata)
+
+    @classmethod
+    def from_settings(cls, model: ModelSettings) -> Mapper:
+        return cls(model.path, model.intra_op_threads, model.inter_op_threads, model.use_cuda)
+
+    def map(self, normalized: np.ndarray) -> np.ndarray:
+        """Mapped coordinates (N, 2) of normalised points (N, 3)."""
+        batch = np.ascontiguousarray(normalized, dtype=np.float32)[None]
+        return self.session.run([OUTPUT_NAME], {INPUT_NAME: batch})[0][0]

@@ -1,0 +1,58 @@
+"""Principal-axes frames of a cloud, and the pose hypotheses they give.
+
+The eigenvectors of a cloud's covariance turn with the object, so matching the
+frames of the observation and of the reference gives a rotation up to the sign
+of each axis: four proper (determinant +1) choices.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# The four sign patterns of a right-handed frame: diag(s) with det = +1.
+PROPER_SIGN_FLIPS = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=np.float64)
+
+
+def principal_axes(centred: np.ndarray) -> np.ndarray:
+    """(3, 3) matrix whose columns are the principal axes, largest variance first, det +1."""
+    covariance = centred.T @ centred / max(len(centred), 1)
+    _, vectors = np.linalg.eigh(covariance)  # ascending eigenvalues
+    axes = vectors[:, ::-1].copy()
+    if np.linalg.det(axes) < 0:
+        axes[:, 2] *= -1
+    return axes
+
+
+def principal_frame(centred: np.ndarray) -> np.ndarray:
+    """Principal axes with each sign chosen so the cloud's third moment along it is positive.
+
+    That makes the frame follow the object (it turns with the object) except where
+    the object is nearly symmetric along an axis; the third axis is the cross
+    product of the first two, so the frame stays a rotation.
+    """
+    axes = principal_axes(centred)
+    coordinates = centred @ axes
+    skew = (coordinates[:, :2] ** 3).mean(axis=0)
+    for k in range(2):
+        if skew[k] < 0:
+            axes[:, k] *= -1
+    axes[:, 2] = np.cross(axes[:, 0], axes[:, 1])
+    return axes
+
+
+def principal_axes_hypotheses(
+    observed: np.ndarray, reference: np.ndarray
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Poses ``scene = R @ model + t`` that carry the reference's frame onto the observation's.
+
+    One per proper sign flip; the translation matches the centroids.
+    """
+    observed_centroid = observed.mean(axis=0)
+    reference_centroid = reference.mean(axis=0)
+    observed_axes = principal_axes(observed - observed_centroid)
+    reference_axes = principal_axes(reference - reference_centroid)
+    poses = []
+    for signs in PROPER_SIGN_FLIPS:
+        rotation = (observed_axes * signs) @ reference_axes.T
+        poses.append((rotation, observed_centroid - rotation @ reference_centroid))
+    return poses

@@ -1,0 +1,122 @@
+"""The engine's numeric steps, each on a constructed case whose answer is known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from service.alignment import alignment_error
+from service.classifier import LinearClassifier
+from service.grid import GRID_SIZE, grid
+from service.icp import icp
+from service.normalize import normalize, radius
+from service.principal_axes import principal_axes_hypotheses, principal_frame
+from service.registration import kabsch, paper_least_squares, ransac
+
+
+def random_pose(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return Rotation.random(random_state=seed).as_matrix(), rng.uniform(-1, 1, 3)
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(Rotation.from_matrix(a.T @ b).magnitude()))
+
+
+def test_kabsch_recovers_a_known_pose_exactly():
+    model = np.random.default_rng(0).normal(size=(50, 3))
+    rotation, translation = random_pose(1)
+    r, t = kabsch(model, model @ rotation.T + translation)
+    assert np.allclose(r, rotation, atol=1e-10) and np.allclose(t, translation, atol=1e-10)
+    assert np.isclose(np.linalg.det(r), 1.0)
+
+
+def test_kabsch_never_returns_a_reflection():
+    model = np.random.default_rng(0).normal(size=(50, 3))
+    mirrored = model * np.array([1, 1, -1])
+    r, _ = kabsch(model, mirrored)
+    assert np.isclose(np.linalg.det(r), 1.0)
+
+
+def test_paper_least_squares_recovers_a_known_pose():
+    model = np.random.default_rng(2).normal(size=(100, 3))
+    rotation, translation = random_pose(3)
+    r, t = paper_least_squares(model, model @ rotation.T + translation)
+    assert np.allclose(r, rotation, atol=1e-8) and np.allclose(t, translation, atol=1e-8)
+
+
+def test_ransac_finds_the_pose_among_70_percent_wrong_pairs():
+    rng = np.random.default_rng(4)
+    model = rng.normal(size=(400, 3))
+    rotation, translation = random_pose(5)
+    scene = model @ rotation.T + translation
+    wrong = rng.random(len(model)) < 0.7
+    scene[wrong] = rng.normal(size=(wrong.sum(), 3)) * 2
+    r, t, inliers = ransac(model, scene, 0.05, 200, rng)
+    assert angle_deg(r, rotation) < 1e-6 and np.allclose(t, translation, atol=1e-6)
+    assert np.array_equal(inliers, ~wrong)
+
+
+def test_principal_axes_hypotheses_contain_the_true_pose(duck_points):
+    rotation, translation = random_pose(6)
+    scene = duck_points @ rotation.T + translation
+    errors = [angle_deg(r, rotation) for r, _ in principal_axes_hypotheses(scene, duck_points)]
+    assert min(errors) < 1.0
+    assert len(errors) == 4
+
+
+def test_principal_frame_turns_with_an_asymmetric_object(duck_points):
+    rotation, _ = random_pose(7)
+    centred = duck_points - duck_points.mean(axis=0)
+    assert np.allclose(principal_frame(centred @ rotation.T), rotation @ principal_frame(centred))
+
+
+def test_icp_converges_from_a_small_perturbation(duck_points):
+    rotation, translation = random_pose(8)
+    scene = duck_points[::2] @ rotation.T + translation
+    nudge = Rotation.from_rotvec([0.1, -0.08, 0.05]).as_matrix()
+    offset = 0.05 * radius(duck_points)
+    r, t = icp(scene, duck_points, cKDTree(duck_points), nudge @ rotation, translation + offset)
+    assert angle_deg(r, rotation) < 0.5
+    assert np.linalg.norm(t - translation) < 0.01 * radius(duck_points)
+
+
+def test_alignment_error_is_zero_at_the_pose_and_grows_off_it(duck_points):
+    rotation, translation = random_pose(9)
+    tree = cKDTree(duck_points)
+    scene = duck_points @ rotation.T + translation
+    assert alignment_error(scene, tree, rotation, translation) < 1e-9
+    shifted = translation + np.array([0.1, 0, 0]) * radius(duck_points)
+    assert alignment_error(scene, tree, rotation, shifted) > 0.01 * radius(duck_points)
+
+
+def test_normalize_centres_and_scales_to_unit_radius(duck_points):
+    result = normalize(duck_points * 3 + 5)
+    assert np.allclose(result.points.mean(axis=0), 0, atol=1e-5)
+    assert np.isclose(np.linalg.norm(result.points, axis=1).max(), 1.0, atol=1e-5)
+    assert np.isclose(result.scale, 3 * radius(duck_points), rtol=1e-6)
+
+
+def test_grid_is_64_by_64_and_sums_to_one():
+    mapped = np.random.default_rng(0).normal(size=(1000, 2))
+    g = grid(mapped)
+    assert g.shape == (GRID_SIZE, GRID_SIZE) and np.isclose(g.sum(), 1.0)
+    assert np.allclose(grid(mapped * 7 + 3), g)  # independent of the output's scale
+
+
+def test_classifier_fits_shapes_and_separates_classes():
+    rng = np.random.default_rng(0)
+    centres = rng.normal(size=(3, 2)) * 3
+    views = [np.stack([grid(rng.normal(size=(500, 2)) + c) for _ in range(6)]) for c in centres]
+    classifier = LinearClassifier.fit(["a", "b", "c"], views)
+    assert classifier.weights.shape == (3, GRID_SIZE * GRID_SIZE)
+    scores = classifier.scores(views[1][0])
+    assert scores.shape == (3,) and np.isclose(scores.sum(), 1.0)
+    assert int(np.argmax(scores)) == 1
+
+
+@pytest.mark.parametrize("count", [3, 40])
+def test_grid_handles_few_points(count):
+    assert np.isclose(grid(np.random.default_rng(1).normal(size=(count, 2))).sum(), 1.0)
