@@ -1,0 +1,1 @@
+"""The HTTP routes, one module a resource; each parses, calls the engine, shapes the answer."""
