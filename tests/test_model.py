@@ -43,7 +43,9 @@ def test_mapping_loss_is_zero_when_the_margin_is_met_and_positive_otherwise():
     negative = anchor.flip(1)  # each row is the other point
     assert mapping_loss(anchor, positive, negative, margin=1.0) == 0
     collapsed = torch.zeros_like(anchor)
-    assert torch.isclose(mapping_loss(collapsed, collapsed, collapsed, margin=1.0), torch.tensor(1.0))
+    assert torch.isclose(
+        mapping_loss(collapsed, collapsed, collapsed, margin=1.0), torch.tensor(1.0)
+    )
 
 
 def test_pose_loss_is_the_mean_distance():
