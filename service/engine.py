@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from service.alignment import alignment_error
-from service.classifier import LinearClassifier
+from service.classifier import LinearClassifier, classifier_input
 from service.errors import EmptyGallery, UnknownReference
 from service.gallery import Reference
 from service.grid import grid
@@ -58,10 +58,16 @@ class Entry:
     reference: Reference
     point_tree: cKDTree
     mapped_tree: cKDTree
+    view_features: np.ndarray  # the classifier's input for each view grid
 
     @classmethod
-    def of(cls, reference: Reference) -> Entry:
-        return cls(reference, cKDTree(reference.points), cKDTree(reference.mapped))
+    def of(cls, reference: Reference, blur: float) -> Entry:
+        return cls(
+            reference,
+            cKDTree(reference.points),
+            cKDTree(reference.mapped),
+            classifier_input(reference.view_grids, blur),
+        )
 
 
 @dataclass(frozen=True)
@@ -113,10 +119,10 @@ class Engine:
 
     def load(self, references: list[Reference]) -> None:
         with self._write_lock:
-            self._publish({r.name: Entry.of(r) for r in references})
+            self._publish({r.name: Entry.of(r, self.settings.grid_blur) for r in references})
 
     def add(self, reference: Reference) -> None:
-        entry = Entry.of(reference)
+        entry = Entry.of(reference, self.settings.grid_blur)
         with self._write_lock:
             self._publish({**self._snapshot.entries, reference.name: entry})
 
@@ -132,8 +138,9 @@ class Engine:
         if entries:
             classifier = LinearClassifier.fit(
                 list(entries),
-                [e.reference.view_grids for e in entries.values()],
+                [e.view_features for e in entries.values()],
                 self.settings.classifier_ridge,
+                self.settings.grid_blur,
             )
         self._snapshot = Snapshot(entries, classifier)
 

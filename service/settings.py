@@ -6,9 +6,11 @@ Grouped by concern; nested groups read ``DPC_<GROUP>__<FIELD>``, e.g.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
+from typing import Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -17,7 +19,7 @@ MODELS_DIR = REPO_ROOT / "models"
 
 class ModelSettings(BaseModel):
     path: Path = MODELS_DIR / "dpc_mn.onnx"
-    manifest: Path = MODELS_DIR / "manifest.json"
+    manifest: Path | None = None  # default: manifest.json beside the model file
     gallery: Path = MODELS_DIR / "gallery.npz"  # seeds the database on first start
     intra_op_threads: int = Field(2, ge=1)
     inter_op_threads: int = Field(1, ge=1)
@@ -36,6 +38,7 @@ class EngineSettings(BaseModel):
     icp_points: int = Field(512, ge=16)
     view_grids: int = Field(12, ge=1)  # augmented views per reference for the classifier
     classifier_ridge: float = Field(1e-3, gt=0)
+    grid_blur: float = Field(1.0, ge=0)  # Gaussian smoothing of grids before eq. (4), in bins
     seed: int = 0
 
 
@@ -50,6 +53,26 @@ class LimitSettings(BaseModel):
     min_points: int = Field(32, ge=3)
     max_points: int = Field(200_000, ge=1)
     max_body_bytes: int = Field(32 * 1024 * 1024, ge=1024)
+    request_timeout_s: float = Field(30.0, gt=0)  # the engine's work for one request; then 504
+    max_concurrent_align: int | None = Field(None, ge=1)  # default: server.workers_threads
+    queue_timeout_s: float = Field(1.0, ge=0)  # wait for a free slot; then 503 + Retry-After
+
+
+Role = Literal["read", "admin"]  # read: align and list; admin: also register and delete
+KEY_PATTERN = re.compile(r"^[\x21-\x7e]+$")  # what a header carries: visible ASCII, no spaces
+
+
+class AuthSettings(BaseModel):
+    # API key -> role, e.g. DPC_AUTH__KEYS='{"<key>": "admin"}'; none: the service is open
+    keys: dict[str, Role] = Field(default_factory=dict, repr=False)
+    require_key_for_reads: bool = True  # false: align and list without a key
+
+    @field_validator("keys")
+    @classmethod
+    def _keys_fit_in_a_header(cls, keys: dict[str, Role]) -> dict[str, Role]:
+        if not all(KEY_PATTERN.match(key) for key in keys):
+            raise ValueError("an API key is visible ASCII characters without spaces")
+        return keys
 
 
 class ServerSettings(BaseModel):
@@ -57,6 +80,7 @@ class ServerSettings(BaseModel):
     port: int = Field(8000, ge=1, le=65535)
     workers_threads: int = Field(2, ge=1)  # threads that run alignments off the event loop
     log_level: str = "info"
+    log_format: Literal["json", "text"] = "json"  # json: one object a line
 
 
 class Settings(BaseSettings):
@@ -67,3 +91,14 @@ class Settings(BaseSettings):
     gallery: GallerySettings = GallerySettings()
     limits: LimitSettings = LimitSettings()
     server: ServerSettings = ServerSettings()
+    auth: AuthSettings = AuthSettings()
+
+    @property
+    def manifest_path(self) -> Path:
+        """The model's manifest: ``model.manifest``, else ``manifest.json`` beside the model."""
+        return self.model.manifest or self.model.path.parent / "manifest.json"
+
+    @property
+    def align_slots(self) -> int:
+        """How many alignments may run at once."""
+        return self.limits.max_concurrent_align or self.server.workers_threads
