@@ -1,28 +1,59 @@
-"""``python -m service``: serve the app with uvicorn on the settings' host and port."""
+"""``python -m service``: check, then serve the app with uvicorn on the settings' host and port.
+
+Bad settings or a failed startup check (``service.startup``) end the process with one line on
+stderr and exit status 2, before anything listens; no traceback.
+"""
 
 from __future__ import annotations
 
-import logging
+import sys
+from typing import NoReturn
 
 import uvicorn
+from pydantic import ValidationError
+from pydantic_settings import SettingsError
 
+from service import logs, startup
 from service.app import create_app
 from service.settings import Settings
 
 
 def main() -> None:
-    settings = Settings()
-    logging.basicConfig(
-        level=settings.server.log_level.upper(),
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
+    try:
+        settings = Settings()
+    except ValidationError as error:
+        fail(f"invalid settings: {settings_message(error)}")
+    except SettingsError as error:  # a DPC_* value that is not JSON where JSON is expected
+        fail(f"invalid settings: {error}; a group's value is JSON, e.g. DPC_AUTH__KEYS='{{...}}'")
+    startup.quiet_onnxruntime()
+    try:
+        startup.prepare(settings)  # the lifespan prepares again, cheaply; this fails cleanly
+    except startup.StartupError as error:
+        fail(str(error))
+    logs.configure(settings.server.log_level, settings.server.log_format)
     # the lifespan logs the model's path, hash and execution providers once they are loaded
     uvicorn.run(
         create_app(settings),
         host=settings.server.host,
         port=settings.server.port,
         log_level=settings.server.log_level,
+        log_config=None,  # uvicorn's own lines go through our (JSON) handler
+        access_log=False,  # logs.RequestLog writes one line a request, without the query
     )
+
+
+def settings_message(error: ValidationError) -> str:
+    """One line; an API key is never echoed (it may sit in a location or an input)."""
+    parts = []
+    for item in error.errors():
+        where = "__".join(str(part) for part in item["loc"][:2]).upper()  # not auth.keys.<key>
+        parts.append(f"DPC_{where}: {item['msg']}")  # the message, not the input
+    return "; ".join(parts)
+
+
+def fail(message: str) -> NoReturn:
+    print(f"dpc-mn-service: cannot start: {message}", file=sys.stderr)
+    sys.exit(startup.EXIT_STATUS)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,9 @@
-"""The FastAPI application: lifespan, error mapping, body limit, metrics, the routers.
+"""The FastAPI application: lifespan, error mapping, body limit, metrics, logs, the routers.
 
-``create_app(settings)`` builds it; the lifespan loads the model (fails fast when it is missing),
-opens the store and loads the gallery in a background thread, so ``/v2/health/live`` answers at
-once and ``/v2/health/ready`` turns 200 when the gallery is in.
+``create_app(settings)`` builds it; the lifespan runs the startup checks (``service.startup``:
+the model, its manifest, the data directory, the store's schema), then loads the gallery in a
+background thread, so ``/v2/health/live`` answers at once and ``/v2/health/ready`` turns 200
+when the gallery is in.
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 from typing import Any
 
-import anyio
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
@@ -23,16 +23,17 @@ from prometheus_fastapi_instrumentator import Instrumentator
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service import auth, logs, startup
 from service.catalog import Catalog, GalleryFull
 from service.dependencies import Loading, NotReady
 from service.engine import Engine
 from service.errors import EmptyGallery, InvalidPoints, ReferenceExists, UnknownReference
-from service.mapping import Mapper
+from service.limiter import Busy, Limiter, TimedOut
 from service.routes import align, health, references
 from service.routes.common import UnsupportedMediaType
 from service.schemas import AlignRequest, ReferenceRequest
 from service.settings import Settings
-from service.store import GalleryStore, StoreCorrupted
+from service.store import StoreCorrupted
 
 log = logging.getLogger("service")
 
@@ -45,6 +46,8 @@ STATUS = {  # the one status code of each error the engine, store and routes rai
     GalleryFull: 409,
     UnsupportedMediaType: 415,
     NotReady: 503,
+    Busy: 503,  # with Retry-After
+    TimedOut: 504,
 }
 ERROR_REF = "#/components/schemas/Error"
 
@@ -66,7 +69,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.include_router(router)
     _add_error_handlers(app)
     app.add_middleware(BodyLimit, max_bytes=settings.limits.max_body_bytes)
-    _add_metrics(app)  # outermost, so it counts every answer, the 413s included
+    _add_metrics(app)  # counts every answer, the 413s included
+    app.add_middleware(logs.RequestLog)  # outermost: every answer has a request id
     app.openapi = lambda: _openapi(app)
     return app
 
@@ -74,19 +78,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 @asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
-    if not settings.model.path.is_file():
-        raise RuntimeError(f"no ONNX model at {settings.model.path}: set DPC_MODEL__PATH")
-    mapper = Mapper.from_settings(settings.model)
+    mapper, store = startup.prepare(settings)
     log.info(
         "model %s (sha256 %s), execution providers %s",
         mapper.path,
         mapper.model_hash,
         ", ".join(mapper.providers),
     )
-    store = GalleryStore.in_dir(settings.gallery.data_dir)
+    _log_auth(settings)
     catalog = Catalog(Engine(mapper, settings.engine), store, settings.gallery.max_references)
     app.state.catalog = catalog
-    app.state.limiter = anyio.CapacityLimiter(settings.server.workers_threads)
+    limits = settings.limits
+    app.state.limiter = limiter = Limiter(
+        settings.align_slots, limits.queue_timeout_s, limits.request_timeout_s
+    )
     app.state.loading = loading = Loading()
     app.state.metrics_references.set_function(lambda: len(catalog.engine))
     loader = threading.Thread(
@@ -94,7 +99,27 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     )
     loader.start()
     yield
+    limiter.close()
     loader.join(timeout=1.0)  # a load cannot be interrupted; the daemon thread dies with us
+
+
+def _log_auth(settings: Settings) -> None:
+    """Say how callers are checked; the keys themselves are never logged."""
+    keys = settings.auth.keys
+    if not keys:
+        log.warning(
+            "auth: OPEN MODE, no API key is configured (DPC_AUTH__KEYS): anyone who reaches "
+            "this port may register and delete references"
+        )
+        return
+    roles = sorted(keys.values())
+    log.info(
+        "auth: %d API key(s) (%d admin, %d read); reads %s a key",
+        len(keys),
+        roles.count("admin"),
+        roles.count("read"),
+        "need" if settings.auth.require_key_for_reads else "do not need",
+    )
 
 
 def _load(catalog: Catalog, settings: Settings, loading: Loading) -> None:
@@ -159,7 +184,8 @@ def _add_error_handlers(app: FastAPI) -> None:
 
     def handler(code: int) -> Callable[[Request, Exception], Awaitable[JSONResponse]]:
         async def answer(request: Request, error: Exception) -> JSONResponse:
-            return JSONResponse({"detail": str(error)}, status_code=code)
+            headers = getattr(error, "headers", None)  # Busy's Retry-After
+            return JSONResponse({"detail": str(error)}, status_code=code, headers=headers)
 
         return answer
 
@@ -177,8 +203,11 @@ def _add_error_handlers(app: FastAPI) -> None:
 
     async def bug(request: Request, error: Exception) -> JSONResponse:
         log.exception("unhandled error on %s %s", request.method, request.url.path)
+        rid = logs.request_id.get()
         return JSONResponse(
-            {"detail": f"internal error ({type(error).__name__}); this is a bug"}, status_code=500
+            {"detail": f"internal error ({type(error).__name__}); this is a bug"},
+            status_code=500,
+            headers={logs.HEADER: rid} if rid else None,
         )
 
     app.add_exception_handler(RequestValidationError, invalid)
@@ -211,6 +240,20 @@ def _add_metrics(app: FastAPI) -> None:
     )
 
 
+def _document_auth(document: dict[str, Any], settings: Settings) -> None:
+    """Keep the security requirements (a role each, as the scope) that this service enforces:
+    none when it is open, only the writes' when reads need no key."""
+    mode = auth.mode(settings.auth)
+    for operation in (op for path in document["paths"].values() for op in path.values()):
+        roles = {role for need in operation.get("security", []) for role in sum(need.values(), [])}
+        if mode == "open" or (mode == "keys-for-writes" and roles == {"read"}):
+            operation.pop("security", None)
+            for code in ("401", "403"):
+                operation.get("responses", {}).pop(code, None)
+    if mode == "open":
+        document.get("components", {}).pop("securitySchemes", None)
+
+
 def _openapi(app: FastAPI) -> dict[str, Any]:
     """The generated document, plus the request bodies the routes read themselves."""
     if app.openapi_schema:
@@ -226,6 +269,7 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
             invalid["content"] = {"application/json": {"schema": {"$ref": ERROR_REF}}}
     for name in ("HTTPValidationError", "ValidationError"):
         schemas.pop(name, None)
+    _document_auth(document, app.state.settings)
     for model in (AlignRequest, ReferenceRequest):
         schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
         schemas.update(schema.pop("$defs", {}))

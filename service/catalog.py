@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -66,22 +67,33 @@ class Catalog:
         log.info("seeded the store with %d references from %s", len(references), gallery)
 
     def register(
-        self, name: str, points: np.ndarray, replace: bool = False, self_check_poses: int = 0
+        self,
+        name: str,
+        points: np.ndarray,
+        replace: bool = False,
+        self_check_poses: int = 0,
+        commit: Callable[[], None] = lambda: None,
     ) -> tuple[Reference, bool, list[dict] | None]:
-        """Compute, store and add a reference; returns it, whether it was new, its self-check."""
+        """Compute, store and add a reference; returns it, whether it was new, its self-check.
+
+        ``commit`` is called just before the durable write and may raise to stop it.
+        """
         self._check_can_add(name, replace)  # fail fast, before the slow part
         reference = self.engine.make_reference(name, points)
         with self._write_lock:
             existed = self._check_can_add(name, replace)
+            commit()
             self.store.put(reference, self.model_hash, replace=replace)
             self.engine.add(reference)
         checks = self.engine.self_check(reference, self_check_poses) if self_check_poses else None
         return reference, not existed, checks
 
-    def remove(self, name: str) -> None:
+    def remove(self, name: str, commit: Callable[[], None] = lambda: None) -> None:
+        """Delete a reference from the store and the engine; ``commit`` as for ``register``."""
         with self._write_lock:
             if self.engine.get(name) is None:
                 raise UnknownReference(f"no reference named '{name}'")
+            commit()
             self.store.delete(name)
             self.engine.remove(name)
 

@@ -8,11 +8,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated
 
-import anyio
 from fastapi import Depends, Request
 
 from service.catalog import Catalog
 from service.engine import Engine
+from service.limiter import Limiter
 from service.settings import Settings
 
 
@@ -57,8 +57,8 @@ def get_engine(catalog: Annotated[Catalog, Depends(get_catalog)]) -> Engine:
     return catalog.engine
 
 
-def get_limiter(request: Request) -> anyio.CapacityLimiter:
-    """The threads that run numerics off the event loop (``server.workers_threads``)."""
+def get_limiter(request: Request) -> Limiter:
+    """The slots, threads and time budget of the engine's work (``service.limiter``)."""
     return request.app.state.limiter
 
 
@@ -67,4 +67,4 @@ LoadingDep = Annotated[Loading, Depends(get_loading)]
 LoadingCatalogDep = Annotated[Catalog, Depends(get_loading_catalog)]
 CatalogDep = Annotated[Catalog, Depends(get_catalog)]
 EngineDep = Annotated[Engine, Depends(get_engine)]
-LimiterDep = Annotated[anyio.CapacityLimiter, Depends(get_limiter)]
+LimiterDep = Annotated[Limiter, Depends(get_limiter)]

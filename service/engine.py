@@ -207,49 +207,45 @@ class Engine:
         verify = observed[subsample(observed, settings.verify_points, rng)]
         refine_on = observed[subsample(observed, settings.icp_points, rng)]
         labels = snapshot.classifier.labels
-        best: tuple[float, str, Hypothesis] | None = None
-        fits = []
+        fits: list[tuple[float, str, Hypothesis]] = []
         for row in shortlist:
             entry = snapshot.entries[labels[row]]
-            reference = entry.reference
             # 4. Hypothesise poses: mapped pairs (RANSAC), principal axes, the paper's solver.
-            candidates_poses = hypothesise(
+            poses = hypothesise(
                 hypotheses or settings.hypotheses,
                 observed,
                 observed_mapped,
-                reference.points,
+                entry.reference.points,
                 entry.mapped_tree,
-                settings.ransac_threshold * reference.scale,
+                settings.ransac_threshold * entry.reference.scale,
                 settings.ransac_iterations,
                 rng,
             )
             clock.lap("hypothesise")
-            # 5. Verify each cheaply by the alignment error on a small subsample.
-            errors = [
-                alignment_error(verify, entry.point_tree, h.rotation, h.translation)
-                for h in candidates_poses
-            ]
-            order = np.argsort(errors)[: settings.refine_best]
+            # 5. Verify each cheaply: the alignment error on a small subsample.
+            for pose in poses:
+                error = alignment_error(verify, entry.point_tree, pose.rotation, pose.translation)
+                fits.append((error, labels[row], pose))
             clock.lap("verify")
-            # 6. Refine the best few with ICP, and keep the best fit.
-            for index in order:
-                hypothesis = candidates_poses[index]
-                error = errors[index]
-                if refine:
-                    rotation, translation = icp(
-                        refine_on,
-                        reference.points,
-                        entry.point_tree,
-                        hypothesis.rotation,
-                        hypothesis.translation,
-                        settings.icp_iterations,
-                    )
-                    hypothesis = Hypothesis(rotation, translation, hypothesis.source)
-                    error = alignment_error(verify, entry.point_tree, rotation, translation)
-                fits.append((error, labels[row], hypothesis, float(scores[row])))
-                if best is None or error < best[0]:
-                    best = (error, labels[row], hypothesis)
-            clock.lap("refine")
+
+        # 6. Refine the best few hypotheses of all candidates with ICP; the best fit wins.
+        fits.sort(key=lambda fit: fit[0])
+        if refine:
+            for index, (_, label, pose) in enumerate(fits[: settings.refine_best]):
+                entry = snapshot.entries[label]
+                rotation, translation = icp(
+                    refine_on,
+                    entry.reference.points,
+                    entry.point_tree,
+                    pose.rotation,
+                    pose.translation,
+                    settings.icp_iterations,
+                )
+                error = alignment_error(verify, entry.point_tree, rotation, translation)
+                fits[index] = (error, label, Hypothesis(rotation, translation, pose.source))
+            fits.sort(key=lambda fit: fit[0])
+        clock.lap("refine")
+        best = fits[0]
 
         # 7. Measure the fit of the winner on every observed point.
         _, label, winner = best
@@ -258,11 +254,14 @@ class Engine:
         clock.lap("measure")
         scale = winner_entry.reference.scale
         per_label: dict[str, CandidateFit] = {}
-        for fit_error, fit_label, hypothesis, score in sorted(fits, key=lambda f: f[0]):
+        for fit_error, fit_label, hypothesis in fits:  # sorted: the first per label is its best
             if fit_label not in per_label:
-                fit_scale = snapshot.entries[fit_label].reference.scale
                 per_label[fit_label] = CandidateFit(
-                    fit_label, score, fit_error, fit_error / fit_scale, hypothesis.source
+                    fit_label,
+                    float(scores[labels.index(fit_label)]),
+                    fit_error,
+                    fit_error / snapshot.entries[fit_label].reference.scale,
+                    hypothesis.source,
                 )
         return Alignment(
             label=label,

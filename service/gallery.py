@@ -8,8 +8,10 @@ gallery is one ``.npz`` (arrays only, never pickle) with a JSON ``meta`` entry.
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -25,10 +27,20 @@ class Reference:
     view_grids: np.ndarray  # (V, 64, 64) float32, grids of augmented views
     scale: float  # radius: the largest distance from the centroid to a point
 
+    @cached_property
+    def points_sha256(self) -> str:
+        """sha256 of the points as little-endian float32 x y z triples, row after row: what a
+        client computes of the points it sent, to check the service holds exactly those."""
+        return points_sha256(self.points)
+
     @property
     def grid(self) -> np.ndarray:
         """The reference's own 64x64 grid, as eq. (4) sees it."""
         return grid(self.mapped)
+
+
+def points_sha256(points: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(points, dtype="<f4").tobytes()).hexdigest()
 
 
 def save_gallery(path: Path, references: list[Reference], meta: dict) -> None:

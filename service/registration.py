@@ -18,15 +18,16 @@ def kabsch_batch(model: np.ndarray, scene: np.ndarray) -> tuple[np.ndarray, np.n
     """Kabsch for a batch: (B, k, 3) pairs to (B, 3, 3) rotations and (B, 3) translations."""
     model_centroid = model.mean(axis=1)
     scene_centroid = scene.mean(axis=1)
-    covariance = np.einsum(
-        "bki,bkj->bij", scene - scene_centroid[:, None], model - model_centroid[:, None]
+    # matmul, not einsum: einsum takes a slow unblocked path for these shapes
+    covariance = (scene - scene_centroid[:, None]).transpose(0, 2, 1) @ (
+        model - model_centroid[:, None]
     )
     u, _, vt = np.linalg.svd(covariance)
-    d = np.sign(np.linalg.det(u @ vt))
+    d = np.sign(det3(u @ vt))
     d[d == 0] = 1.0
     u[:, :, 2] *= d[:, None]  # reflect the weakest axis when the best fit is a mirror
     rotations = u @ vt
-    translations = scene_centroid - np.einsum("bij,bj->bi", rotations, model_centroid)
+    translations = scene_centroid - (rotations @ model_centroid[:, :, None])[:, :, 0]
     return rotations, translations
 
 
@@ -54,21 +55,50 @@ def ransac(
     threshold: float,
     iterations: int,
     rng: np.random.Generator,
+    score_pairs: int = 256,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Robust Kabsch over putative pairs: the minimal 3-pair sample with most inliers wins.
 
-    All samples are solved and scored at once; the winner is re-fitted on its inliers.
-    Returns the rotation, the translation and the inlier mask.
+    All samples are solved at once and scored on ``score_pairs`` random pairs; the winner
+    is re-fitted on its inliers among all pairs. Returns the rotation, the translation
+    and the inlier mask.
     """
     count = len(model)
     samples = rng.integers(0, count, size=(iterations, 3))
     rotations, translations = kabsch_batch(model[samples], scene[samples])
-    predicted = np.einsum("bij,nj->bni", rotations, model) + translations[:, None, :]
-    inliers = ((predicted - scene[None]) ** 2).sum(axis=2) < threshold**2  # (B, N)
-    best = int(inliers.sum(axis=1).argmax())
-    mask = inliers[best]
+    scored = rng.choice(count, size=min(count, score_pairs), replace=False)
+    residuals = squared_residuals(model[scored], scene[scored], rotations, translations)
+    best = int((residuals < threshold**2).sum(axis=0).argmax())
+    rotation, translation = rotations[best], translations[best]
+    mask = ((model @ rotation.T + translation - scene) ** 2).sum(axis=1) < threshold**2
     if mask.sum() >= 3:
         rotation, translation = kabsch(model[mask], scene[mask])
         mask = ((model @ rotation.T + translation - scene) ** 2).sum(axis=1) < threshold**2
-        return rotation, translation, mask
-    return rotations[best], translations[best], mask
+    return rotation, translation, mask
+
+
+def squared_residuals(
+    model: np.ndarray, scene: np.ndarray, rotations: np.ndarray, translations: np.ndarray
+) -> np.ndarray:
+    """(N, B) ``|R_b m_n + t_b - s_n|^2`` for every pair n and pose b, as one matrix product.
+
+    Expanded, the square is ``|m|^2 + |s|^2 + |t|^2 - 2 s.t + 2 m.(R^T t) - 2 s^T R m``,
+    and ``s^T R m`` is the dot product of ``vec(s m^T)`` with ``vec(R)``; so no (N, B, 3)
+    array is ever built (numpy's batched 3x3 products are slow and memory-bound).
+    """
+    outer = (scene[:, :, None] * model[:, None, :]).reshape(len(model), 9)
+    features = np.hstack([outer, model, scene])  # (N, 15)
+    rotated_t = np.einsum("bij,bi->bj", rotations, translations)  # R^T t, (B, 3)
+    weights = np.hstack([-2 * rotations.reshape(-1, 9), 2 * rotated_t, -2 * translations])
+    constant = (model**2).sum(axis=1) + (scene**2).sum(axis=1)
+    return features @ weights.T + constant[:, None] + (translations**2).sum(axis=1)[None]
+
+
+def det3(matrices: np.ndarray) -> np.ndarray:
+    """Determinants of a stack of 3x3 matrices, in closed form."""
+    m = matrices
+    return (
+        m[:, 0, 0] * (m[:, 1, 1] * m[:, 2, 2] - m[:, 1, 2] * m[:, 2, 1])
+        - m[:, 0, 1] * (m[:, 1, 0] * m[:, 2, 2] - m[:, 1, 2] * m[:, 2, 0])
+        + m[:, 0, 2] * (m[:, 1, 0] * m[:, 2, 1] - m[:, 1, 1] * m[:, 2, 0])
+    )

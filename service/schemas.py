@@ -88,6 +88,9 @@ class ReferenceInfo(BaseModel):
     name: str
     num_points: int
     scale: float = Field(description="radius: the largest distance from the centroid to a point")
+    points_sha256: str = Field(
+        description="sha256 of the stored points as little-endian float32 x y z triples"
+    )
 
 
 class ReferenceResponse(ReferenceInfo):
@@ -107,6 +110,10 @@ class ModelIdentity(BaseModel):
 
 class Health(BaseModel):
     status: Literal["ok", "loading", "failed"]
+    auth: Literal["open", "keys", "keys-for-writes"] = Field(
+        description="open: no API key is configured; keys: every operation but health needs "
+        "one; keys-for-writes: only registering and deleting need one"
+    )
     model: ModelIdentity
     providers: list[str] = Field(description="onnxruntime execution providers in use")
     references: int

@@ -32,10 +32,10 @@ class EngineSettings(BaseModel):
     hypotheses: tuple[str, ...] = ("mapped", "principal-axes")  # also: "paper"
     ransac_iterations: int = Field(200, ge=1)
     ransac_threshold: float = Field(0.08, gt=0)  # inlier distance, share of the reference's scale
-    verify_points: int = Field(256, ge=16)  # subsample for the cheap alignment-error check
-    refine_best: int = Field(2, ge=1)  # hypotheses refined with ICP
-    icp_iterations: int = Field(20, ge=1)
-    icp_points: int = Field(512, ge=16)
+    verify_points: int = Field(128, ge=16)  # subsample for the cheap alignment-error check
+    refine_best: int = Field(2, ge=1)  # hypotheses (of all candidates) refined with ICP
+    icp_iterations: int = Field(10, ge=1)
+    icp_points: int = Field(256, ge=16)
     view_grids: int = Field(12, ge=1)  # augmented views per reference for the classifier
     classifier_ridge: float = Field(1e-3, gt=0)
     grid_blur: float = Field(1.0, ge=0)  # Gaussian smoothing of grids before eq. (4), in bins
@@ -55,7 +55,7 @@ class LimitSettings(BaseModel):
     max_body_bytes: int = Field(32 * 1024 * 1024, ge=1024)
     request_timeout_s: float = Field(30.0, gt=0)  # the engine's work for one request; then 504
     max_concurrent_align: int | None = Field(None, ge=1)  # default: server.workers_threads
-    queue_timeout_s: float = Field(1.0, ge=0)  # wait for a free slot; then 503 + Retry-After
+    queue_timeout_s: float = Field(5.0, ge=0)  # wait for a free slot; then 503 + Retry-After
 
 
 Role = Literal["read", "admin"]  # read: align and list; admin: also register and delete

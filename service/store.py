@@ -51,6 +51,10 @@ class StoreCorrupted(RuntimeError):
     """A stored reference whose checksum does not match its data."""
 
 
+class StoreIncompatible(RuntimeError):
+    """A database this code cannot use: written by a newer version, or not a gallery at all."""
+
+
 @dataclass(frozen=True)
 class StoredReference:
     reference: Reference
@@ -62,17 +66,37 @@ class GalleryStore:
     def __init__(self, path: str | Path):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        with self._connect() as conn:
-            conn.execute("PRAGMA journal_mode=WAL")
-            with conn:
-                conn.executescript(SCHEMA)
-                conn.execute(
-                    "INSERT OR IGNORE INTO meta (key, value) VALUES ('schema_version', ?)",
-                    (SCHEMA_VERSION,),
-                )
-            version = self._meta(conn, "schema_version")
-        if version != SCHEMA_VERSION:
-            raise StoreCorrupted(f"{self.path} has schema version {version}, not {SCHEMA_VERSION}")
+        try:
+            with self._connect() as conn:
+                self._check_version(conn)  # before writing anything to it
+                conn.execute("PRAGMA journal_mode=WAL")
+                with conn:
+                    conn.executescript(SCHEMA)
+                    conn.execute(
+                        "INSERT OR IGNORE INTO meta (key, value) VALUES ('schema_version', ?)",
+                        (SCHEMA_VERSION,),
+                    )
+        except sqlite3.DatabaseError as error:  # not a database, or a damaged one
+            raise StoreIncompatible(f"{self.path} is not a usable SQLite file: {error}") from error
+
+    def _check_version(self, conn: sqlite3.Connection) -> None:
+        """A newer schema stops here: this code would misread it or write over it."""
+        has_meta = conn.execute(
+            "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'meta'"
+        ).fetchone()
+        version = self._meta(conn, "schema_version") if has_meta else None
+        if version is None or version == SCHEMA_VERSION:
+            return
+        if not version.isdigit() or int(version) > int(SCHEMA_VERSION):
+            raise StoreIncompatible(
+                f"{self.path} has gallery schema version {version}, newer than this service's "
+                f"{SCHEMA_VERSION}: run the service version that wrote it, or move the file "
+                "away to start a new gallery (docs/operations.md)"
+            )
+        raise StoreIncompatible(  # older: no migration exists yet (version 1 is the first)
+            f"{self.path} has gallery schema version {version}, older than this service's "
+            f"{SCHEMA_VERSION}, and no migration exists: rebuild it (docs/operations.md)"
+        )
 
     @classmethod
     def in_dir(cls, data_dir: str | Path) -> GalleryStore:

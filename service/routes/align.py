@@ -7,17 +7,10 @@ from typing import Annotated, Any
 import numpy as np
 from fastapi import APIRouter, Query, Request
 
+from service.auth import ReadAccess
 from service.dependencies import EngineDep, LimiterDep, SettingsDep
 from service.engine import Alignment, Engine
-from service.routes.common import (
-    JSON,
-    body_kind,
-    errors,
-    in_thread,
-    json_object,
-    parse,
-    require,
-)
+from service.routes.common import JSON, body_kind, errors, json_object, parse, require
 from service.schemas import AlignOptions, AlignResponse, CandidateFit, ReferenceName
 from service.settings import LimitSettings
 from service.validation import points_from_raw, validate_points
@@ -41,8 +34,9 @@ BODY = {
     "/align",
     response_model=AlignResponse,
     summary="Recognise the object in a cloud and estimate its pose",
-    responses=errors(404, 409, 413, 415, 422, 503),
+    responses=errors(401, 404, 409, 413, 415, 422, 503, 504),
     openapi_extra={"requestBody": BODY},
+    dependencies=[ReadAccess],
 )
 async def align(
     request: Request,
@@ -60,7 +54,7 @@ async def align(
     body = await request.body()
     query = {"candidates": candidates, "top_k": top_k, "refine": refine}
     query = {key: value for key, value in query.items() if value is not None}
-    return await in_thread(limiter, _align, engine, settings.limits, body, kind, query)
+    return await limiter.align(_align, engine, settings.limits, body, kind, query)
 
 
 def _align(

@@ -1,12 +1,10 @@
-"""Helpers the routes share: body parsing, option validation, running work off the event loop."""
+"""Helpers the routes share: body parsing, option validation, documented error answers."""
 
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
 from typing import Any, TypeVar
 
-import anyio
 import orjson
 from fastapi import Request
 from fastapi.exceptions import RequestValidationError
@@ -14,7 +12,6 @@ from pydantic import BaseModel, ValidationError
 
 from service.schemas import Error
 
-T = TypeVar("T")
 M = TypeVar("M", bound=BaseModel)
 
 
@@ -67,11 +64,6 @@ def require(data: dict[str, Any], key: str) -> Any:
     return data[key]
 
 
-async def in_thread(limiter: anyio.CapacityLimiter, work: Callable[..., T], *args: Any) -> T:
-    """Run CPU-bound work in the worker threads, so the event loop keeps answering."""
-    return await anyio.to_thread.run_sync(work, *args, limiter=limiter)
-
-
 def invalid(message: str, field: str = "body") -> RequestValidationError:
     """A 422 about one field (or the whole body), worded like FastAPI's own."""
     return RequestValidationError([{"loc": (field,), "msg": message, "type": "value_error"}])
@@ -83,8 +75,11 @@ def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
         404: "an unknown reference",
         409: "a conflict with the gallery's state",
         413: "the body is over the size limit",
+        401: "no API key, or one that is not valid (with `WWW-Authenticate: Bearer`)",
+        403: "the API key's role may not do this",
         415: "a content type the route does not read",
         422: "bad points or fields; the detail names the problem",
-        503: "the model or gallery is not loaded yet",
+        503: "the model or gallery is not loaded yet, or every slot is busy (`Retry-After`)",
+        504: "the work ran past the request's time budget (`limits.request_timeout_s`)",
     }
     return {code: {"model": Error, "description": described[code]} for code in codes}

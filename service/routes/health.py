@@ -5,7 +5,8 @@ from __future__ import annotations
 from fastapi import APIRouter, Response, status
 from pydantic import BaseModel
 
-from service.dependencies import LoadingCatalogDep, LoadingDep
+from service import auth
+from service.dependencies import LoadingCatalogDep, LoadingDep, SettingsDep
 from service.schemas import Health, ModelIdentity
 
 router = APIRouter(tags=["health"])
@@ -26,12 +27,15 @@ class Ready(BaseModel):
     summary="Model identity, execution providers, references; 503 until loaded",
     responses={503: {"model": Health, "description": "loading, or the gallery failed to load"}},
 )
-async def health(response: Response, catalog: LoadingCatalogDep, loading: LoadingDep) -> Health:
+async def health(
+    response: Response, catalog: LoadingCatalogDep, loading: LoadingDep, settings: SettingsDep
+) -> Health:
     if not loading.ready:
         response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
     mapper = catalog.engine.mapper
     return Health(
         status=loading.status,
+        auth=auth.mode(settings.auth),
         model=ModelIdentity(path=str(mapper.path), sha256=mapper.model_hash),
         providers=mapper.providers,
         references=len(catalog.engine),

@@ -7,16 +7,17 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Request, Response, status
 from starlette.datastructures import UploadFile
 
+from service.auth import AdminAccess, ReadAccess
 from service.catalog import Catalog
 from service.dependencies import CatalogDep, EngineDep, LimiterDep, SettingsDep
 from service.errors import UnknownReference
 from service.gallery import Reference
+from service.limiter import Job
 from service.parsers import read_points
 from service.routes.common import (
     JSON,
     body_kind,
     errors,
-    in_thread,
     invalid,
     json_object,
     parse,
@@ -50,8 +51,9 @@ BODY = {
     response_model=ReferenceResponse,
     summary="Register an object (201), or replace one with ?replace=true (200)",
     responses={200: {"model": ReferenceResponse, "description": "replaced"}}
-    | errors(409, 413, 415, 422, 503),
+    | errors(401, 403, 409, 413, 415, 422, 503, 504),
     openapi_extra={"requestBody": BODY},
+    dependencies=[AdminAccess],
 )
 async def register(
     request: Request,
@@ -73,8 +75,8 @@ async def register(
     else:
         fields, source = json_object(await request.body()), None
     poses = settings.gallery.self_check_poses if self_check else 0
-    reference, created, checks = await in_thread(
-        limiter, _register, catalog, settings, fields, source, replace, poses
+    reference, created, checks = await limiter.write(
+        _register, catalog, settings, fields, source, replace, poses
     )
     response.status_code = status.HTTP_201_CREATED if created else status.HTTP_200_OK
     return ReferenceResponse(
@@ -84,6 +86,7 @@ async def register(
 
 
 def _register(
+    job: Job,
     catalog: Catalog,
     settings: Settings,
     fields: dict,
@@ -99,10 +102,16 @@ def _register(
         points = read_points(*source, mesh_points=settings.gallery.reference_points)
     limits = settings.limits
     points = validate_points(points, limits.min_points, limits.max_points)
-    return catalog.register(identity.name, points, replace, self_check_poses)
+    return catalog.register(identity.name, points, replace, self_check_poses, job.commit)
 
 
-@router.get("", response_model=ReferenceList, summary="List the references", responses=errors(503))
+@router.get(
+    "",
+    response_model=ReferenceList,
+    summary="List the references",
+    responses=errors(401, 503),
+    dependencies=[ReadAccess],
+)
 async def list_references(engine: EngineDep) -> ReferenceList:
     references = (engine.get(name) for name in sorted(engine.names()))
     return ReferenceList(references=[_info(r) for r in references if r is not None])
@@ -112,7 +121,8 @@ async def list_references(engine: EngineDep) -> ReferenceList:
     "/{name}",
     response_model=ReferenceInfo,
     summary="Describe a reference",
-    responses=errors(404, 503),
+    responses=errors(401, 404, 503),
+    dependencies=[ReadAccess],
 )
 async def describe(name: str, engine: EngineDep) -> ReferenceInfo:
     reference = engine.get(name)
@@ -126,14 +136,22 @@ async def describe(name: str, engine: EngineDep) -> ReferenceInfo:
     status_code=status.HTTP_204_NO_CONTENT,
     response_class=Response,
     summary="Remove a reference",
-    responses=errors(404, 503),
+    responses=errors(401, 403, 404, 503, 504),
+    dependencies=[AdminAccess],
 )
 async def remove(name: str, catalog: CatalogDep, limiter: LimiterDep) -> Response:
-    await in_thread(limiter, catalog.remove, name)  # refits the classifier
+    await limiter.write(_remove, catalog, name)  # refits the classifier
     return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+def _remove(job: Job, catalog: Catalog, name: str) -> None:
+    catalog.remove(name, job.commit)
 
 
 def _info(reference: Reference) -> ReferenceInfo:
     return ReferenceInfo(
-        name=reference.name, num_points=len(reference.points), scale=float(reference.scale)
+        name=reference.name,
+        num_points=len(reference.points),
+        scale=float(reference.scale),
+        points_sha256=reference.points_sha256,
     )
