@@ -82,20 +82,37 @@ class Catalog:
         reference = self.engine.make_reference(name, points)
         with self._write_lock:
             existed = self._check_can_add(name, replace)
+            previous = self.engine.get(name)
             commit()
             self.store.put(reference, self.model_hash, replace=replace)
-            self.engine.add(reference)
+            try:
+                self.engine.add(reference)
+            except BaseException:  # the store must not keep what the engine refused
+                self._restore(name, previous)
+                raise
         checks = self.engine.self_check(reference, self_check_poses) if self_check_poses else None
         return reference, not existed, checks
 
     def remove(self, name: str, commit: Callable[[], None] = lambda: None) -> None:
         """Delete a reference from the store and the engine; ``commit`` as for ``register``."""
         with self._write_lock:
-            if self.engine.get(name) is None:
+            previous = self.engine.get(name)
+            if previous is None:
                 raise UnknownReference(f"no reference named '{name}'")
             commit()
             self.store.delete(name)
-            self.engine.remove(name)
+            try:
+                self.engine.remove(name)
+            except BaseException:
+                self._restore(name, previous)
+                raise
+
+    def _restore(self, name: str, previous: Reference | None) -> None:
+        """Undo a store write the engine could not follow: the store keeps what it had."""
+        if previous is None:
+            self.store.delete(name)
+        else:
+            self.store.put(previous, self.model_hash, replace=True)
 
     def _check_can_add(self, name: str, replace: bool) -> bool:
         """Whether ``name`` exists; raises if it may not be added."""

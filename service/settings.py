@@ -29,6 +29,9 @@ class ModelSettings(BaseModel):
 class EngineSettings(BaseModel):
     network_points: int = Field(1024, ge=64)  # the observation is subsampled to this many points
     top_k: int = Field(3, ge=1)  # candidates verified geometrically
+    # observed radius / reference scale of a plausible candidate (full views: 0.96-1.05,
+    # one camera's view: 0.85-1.45, measured); (0, inf) turns the size check off
+    size_ratio: tuple[float, float] = (0.7, 1.6)
     hypotheses: tuple[str, ...] = ("mapped", "principal-axes")  # also: "paper"
     ransac_iterations: int = Field(200, ge=1)
     ransac_threshold: float = Field(0.08, gt=0)  # inlier distance, share of the reference's scale
@@ -36,7 +39,8 @@ class EngineSettings(BaseModel):
     refine_best: int = Field(2, ge=1)  # hypotheses (of all candidates) refined with ICP
     icp_iterations: int = Field(10, ge=1)
     icp_points: int = Field(256, ge=16)
-    view_grids: int = Field(12, ge=1)  # augmented views per reference for the classifier
+    view_grids: int = Field(16, ge=1)  # augmented views per reference for the classifier
+    partial_views: float = Field(0.5, ge=0, le=1)  # share of them seen by a single camera
     classifier_ridge: float = Field(1e-3, gt=0)
     grid_blur: float = Field(1.0, ge=0)  # Gaussian smoothing of grids before eq. (4), in bins
     seed: int = 0
