@@ -39,10 +39,10 @@ class EngineSettings(BaseModel):
     refine_best: int = Field(2, ge=1)  # hypotheses (of all candidates) refined with ICP
     icp_iterations: int = Field(10, ge=1)
     icp_points: int = Field(256, ge=16)
-    view_grids: int = Field(16, ge=1)  # augmented views per reference for the classifier
-    partial_views: float = Field(0.5, ge=0, le=1)  # share of them seen by a single camera
+    view_grids: int = Field(32, ge=1)  # augmented views per reference for the classifier
+    partial_views: float = Field(0.0, ge=0, le=1)  # share of them seen by a single camera
     classifier_ridge: float = Field(1e-3, gt=0)
-    grid_blur: float = Field(1.0, ge=0)  # Gaussian smoothing of grids before eq. (4), in bins
+    grid_blur: float = Field(2.0, ge=0)  # Gaussian smoothing of grids before eq. (4), in bins
     seed: int = 0
 
 

@@ -1,0 +1,135 @@
+"""The evaluation's metrics on clouds whose answers are known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from service.sampling import sample_surface
+from training.metrics import (
+    PRECISE_ADD_S,
+    add_s,
+    alignment_error_normalized,
+    alignment_floor,
+    diameter,
+    geodesic_deg,
+    summarize,
+)
+
+
+def rotation_z(degrees: float) -> np.ndarray:
+    return Rotation.from_euler("z", degrees, degrees=True).as_matrix()
+
+
+def test_geodesic_of_a_known_rotation():
+    assert geodesic_deg(rotation_z(30), np.eye(3)) == pytest.approx(30)
+    assert geodesic_deg(np.eye(3), rotation_z(-75)) == pytest.approx(75)
+    assert geodesic_deg(rotation_z(180), np.eye(3)) == pytest.approx(180)
+    base = Rotation.random(random_state=1).as_matrix()
+    turn = Rotation.from_rotvec([0.0, 0.6, 0.0]).as_matrix()
+    assert geodesic_deg(turn @ base, base) == pytest.approx(np.degrees(0.6))
+
+
+def test_diameter_of_a_cube_and_of_a_flat_square():
+    cube = np.array(np.meshgrid([0, 1], [0, 1], [0, 1])).reshape(3, -1).T.astype(float)
+    inside = np.random.default_rng(0).random((200, 3))
+    assert diameter(np.vstack([cube, inside])) == pytest.approx(np.sqrt(3))
+    square = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0.5, 0.5, 0]], float)
+    assert diameter(square) == pytest.approx(np.sqrt(2))
+
+
+def test_add_s_is_zero_at_the_true_pose_and_known_for_an_offset():
+    points = sample_surface(trimesh.creation.box((1.0, 2.0, 3.0)), 500, 1)
+    rotation, translation = Rotation.random(random_state=2).as_matrix(), np.array([1.0, 2, 3])
+    assert add_s(points, rotation, translation, rotation, translation, 1.0) == pytest.approx(0)
+    two = np.array([[0.0, 0, 0], [10.0, 0, 0]])
+    shifted = add_s(two, np.eye(3), [0, 1.0, 0], np.eye(3), np.zeros(3), diameter(two))
+    assert shifted == pytest.approx(0.1)
+
+
+def test_add_s_forgives_symmetry_but_not_a_wrong_rotation():
+    sphere = sample_surface(trimesh.creation.icosphere(5, 1.0), 3000, 1)
+    wrong = Rotation.random(random_state=3).as_matrix()
+    # any rotation of a sphere is a symmetry: only the resampling spacing is left (precise)
+    assert add_s(sphere, wrong, np.zeros(3), np.eye(3), np.zeros(3), 2.0) < PRECISE_ADD_S
+    box = sample_surface(trimesh.creation.box((1.0, 2.0, 4.0)), 3000, 1)
+    tilt = Rotation.from_euler("y", 60, degrees=True).as_matrix()
+    assert add_s(box, tilt, np.zeros(3), np.eye(3), np.zeros(3), diameter(box)) > 0.1
+    # a half turn about an axis of the box is one of its symmetries
+    flip = Rotation.from_euler("z", 180, degrees=True).as_matrix()
+    assert add_s(box, flip, np.zeros(3), np.eye(3), np.zeros(3), diameter(box)) < PRECISE_ADD_S
+
+
+def test_alignment_error_of_identical_and_offset_clouds():
+    grid = np.array(np.meshgrid(np.arange(20), np.arange(20), [0.0])).reshape(3, -1).T * 0.1
+    scale = float(np.linalg.norm(grid - grid.mean(0), axis=1).max())
+    assert alignment_error_normalized(grid, grid, np.eye(3), np.zeros(3), scale) == 0.0
+    # the observation lies 0.02 above the plane of the reference: every point 0.02 away
+    lifted = grid + [0, 0, 0.02]
+    error = alignment_error_normalized(lifted, grid, np.eye(3), np.zeros(3), scale)
+    assert error == pytest.approx(0.02 / scale)
+    # the same at any pose: scene = R @ model + t
+    rotation, translation = Rotation.random(random_state=4).as_matrix(), np.array([5.0, -1, 2])
+    scene = lifted @ rotation.T + translation
+    assert alignment_error_normalized(scene, grid, rotation, translation, scale) == pytest.approx(
+        0.02 / scale
+    )
+
+
+def test_alignment_floor_of_a_resampled_cloud_is_small_but_not_zero():
+    mesh = trimesh.creation.icosphere(4, 1.0)
+    reference, observed = sample_surface(mesh, 2048, 0), sample_surface(mesh, 2048, 5)
+    floor = alignment_floor(observed, reference, 1.0)
+    assert 0.005 < floor < 0.05
+    assert alignment_floor(reference, reference, 1.0) == 0.0
+
+
+def test_summarize_counts_success_precise_and_medians():
+    records = [
+        dict(
+            label_ok=True,
+            add_s=0.01,
+            rot_err_deg=1.0,
+            align_err=0.03,
+            align_err_floor=0.026,
+            latency_ms=10.0,
+        ),
+        dict(
+            label_ok=True,
+            add_s=0.05,
+            rot_err_deg=3.0,
+            align_err=0.05,
+            align_err_floor=0.026,
+            latency_ms=20.0,
+        ),
+        dict(
+            label_ok=False,
+            add_s=0.01,
+            rot_err_deg=2.0,
+            align_err=0.04,
+            align_err_floor=0.030,
+            latency_ms=30.0,
+        ),
+        dict(
+            label_ok=True,
+            add_s=None,
+            rot_err_deg=None,
+            align_err=None,
+            align_err_floor=0.030,
+            latency_ms=40.0,
+        ),
+    ]
+    summary = summarize(records)
+    assert summary["cases"] == 4
+    assert summary["accuracy"] == pytest.approx(0.75)
+    assert summary["success"] == pytest.approx(0.5)  # a wrong label never succeeds
+    assert summary["precise"] == pytest.approx(0.25)
+    assert summary["median_rot_err_deg"] == pytest.approx(2.0)
+    assert summary["median_add_s"] == pytest.approx(0.01)
+    assert summary["median_align_err"] == pytest.approx(0.04)
+    assert summary["median_align_err_floor"] == pytest.approx(0.028)
+    assert summary["latency_ms_median"] == pytest.approx(25.0)
+    assert summary["latency_ms_p95"] == pytest.approx(np.percentile([10, 20, 30, 40], 95))
+    assert summarize([]) == {"cases": 0}
