@@ -21,6 +21,7 @@ from fastapi.responses import JSONResponse
 from prometheus_client import CollectorRegistry, Gauge
 from prometheus_fastapi_instrumentator import Instrumentator
 from starlette.exceptions import HTTPException
+from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import auth, logs, startup
@@ -197,8 +198,11 @@ def _add_error_handlers(app: FastAPI) -> None:
         return JSONResponse({"detail": validation_message(error.errors())}, status_code=422)
 
     async def http_error(request: Request, error: HTTPException) -> JSONResponse:
+        headers = error.headers
+        if error.status_code == 405:  # every method of the path, not only its first route's
+            headers = {**(headers or {}), "Allow": ", ".join(allowed_methods(app, request))}
         return JSONResponse(
-            {"detail": str(error.detail)}, status_code=error.status_code, headers=error.headers
+            {"detail": str(error.detail)}, status_code=error.status_code, headers=headers
         )
 
     async def bug(request: Request, error: Exception) -> JSONResponse:
@@ -213,6 +217,16 @@ def _add_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(RequestValidationError, invalid)
     app.add_exception_handler(HTTPException, http_error)
     app.add_exception_handler(Exception, bug)
+
+
+def allowed_methods(app: FastAPI, request: Request) -> list[str]:
+    """The methods the routes of a request's path answer (Starlette names only the first's)."""
+    methods: set[str] = set()
+    for route in app.router.routes:
+        match, _ = route.matches(request.scope)
+        if match != Match.NONE:
+            methods |= getattr(route, "methods", None) or set()
+    return sorted(methods)
 
 
 def validation_message(errors: Any) -> str:

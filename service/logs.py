@@ -68,6 +68,8 @@ def configure(level: str, fmt: str = "json") -> None:
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(level.upper())
+    # trimesh logs a traceback at WARNING for every unreadable upload: the 422 says it already
+    logging.getLogger("trimesh").setLevel(max(root.level, logging.ERROR))
 
 
 class RequestLog:

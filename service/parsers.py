@@ -110,25 +110,30 @@ def read_pcd(data: bytes) -> np.ndarray:
     """The x y z fields of a PCD file, DATA ascii or binary (binary_compressed is refused)."""
     header, offset = _pcd_header(data)
     fields = header["FIELDS"]
-    sizes = [int(s) for s in header.get("SIZE", ["4"] * len(fields))]
+    sizes = _pcd_numbers(header, "SIZE", ["4"] * len(fields))
     types = header.get("TYPE", ["F"] * len(fields))
-    counts = [int(c) for c in header.get("COUNT", ["1"] * len(fields))]
+    counts = _pcd_numbers(header, "COUNT", ["1"] * len(fields))
     if not len(fields) == len(sizes) == len(types) == len(counts):
         raise InvalidPoints("the PCD header's FIELDS, SIZE, TYPE and COUNT differ in length")
     for axis in ("x", "y", "z"):
         if axis not in fields:
             raise InvalidPoints(f"the PCD file has no '{axis}' field (FIELDS {' '.join(fields)})")
-    try:
-        count = int(header["POINTS"][0])
-    except (KeyError, IndexError, ValueError):
-        count = int(header.get("WIDTH", ["0"])[0]) * int(header.get("HEIGHT", ["1"])[0])
+    if "POINTS" in header:
+        (count,) = _pcd_numbers(header, "POINTS", [], minimum=0)
+    else:
+        (width,) = _pcd_numbers(header, "WIDTH", ["0"], minimum=0)
+        (height,) = _pcd_numbers(header, "HEIGHT", ["1"], minimum=0)
+        count = width * height
     dtype = []
     for name, size, kind, repeat in zip(fields, sizes, types, counts, strict=True):
         code = PCD_TYPES.get((kind.upper(), size))
         if code is None:
             raise InvalidPoints(f"the PCD field '{name}' has TYPE {kind} SIZE {size}")
         dtype.append((name, "<" + code, (repeat,)) if repeat > 1 else (name, "<" + code))
-    record = np.dtype(dtype)
+    try:
+        record = np.dtype(dtype)
+    except (ValueError, TypeError) as error:  # a field named twice, a record too large
+        raise InvalidPoints(f"the PCD header's fields are unusable: {error}") from error
     encoding = header["DATA"][0].lower()
     body = data[offset:]
     if encoding == "ascii":
@@ -145,6 +150,25 @@ def read_pcd(data: bytes) -> np.ndarray:
         table = np.frombuffer(body, dtype=record, count=count)
         return np.stack([table[axis].astype(np.float64) for axis in ("x", "y", "z")], axis=1)
     raise InvalidPoints(f"PCD DATA {encoding} is not supported: save as ascii or binary")
+
+
+def _pcd_numbers(
+    header: dict[str, list[str]], key: str, default: list[str], minimum: int = 1
+) -> list[int]:
+    """A header line of whole numbers (one value for POINTS, WIDTH, HEIGHT), or InvalidPoints."""
+    values = header.get(key, default)
+    single = key in ("POINTS", "WIDTH", "HEIGHT")
+    if (
+        (single and len(values) != 1)
+        or not all(v.isascii() and v.isdigit() for v in values)
+        or any(int(v) < minimum for v in values)
+    ):
+        shown = " ".join(values)[:40]
+        raise InvalidPoints(
+            f"the PCD header's {key} line is '{shown}': "
+            f"{'a whole number' if single else 'whole numbers'} of at least {minimum} expected"
+        )
+    return [int(v) for v in values]
 
 
 def _pcd_header(data: bytes) -> tuple[dict[str, list[str]], int]:

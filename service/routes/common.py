@@ -72,14 +72,33 @@ def invalid(message: str, field: str = "body") -> RequestValidationError:
 def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
     """OpenAPI entries for error answers, all ``{"detail": "..."}``."""
     described = {
+        401: "no API key, or one that is not valid",
+        403: "the API key's role may not do this",
         404: "an unknown reference",
         409: "a conflict with the gallery's state",
         413: "the body is over the size limit",
-        401: "no API key, or one that is not valid (with `WWW-Authenticate: Bearer`)",
-        403: "the API key's role may not do this",
         415: "a content type the route does not read",
         422: "bad points or fields; the detail names the problem",
-        503: "the model or gallery is not loaded yet, or every slot is busy (`Retry-After`)",
+        503: "the model or gallery is not loaded yet, or every slot stayed busy",
         504: "the work ran past the request's time budget (`limits.request_timeout_s`)",
     }
-    return {code: {"model": Error, "description": described[code]} for code in codes}
+    headers = {
+        401: {"WWW-Authenticate": "`Bearer`"},
+        503: {"Retry-After": "seconds to wait before retrying, when every slot was busy"},
+    }
+    return {
+        code: {
+            "model": Error,
+            "description": described[code],
+            **(
+                {"headers": {k: _header(v) for k, v in headers[code].items()}}
+                if code in headers
+                else {}
+            ),
+        }
+        for code in codes
+    }
+
+
+def _header(description: str) -> dict[str, Any]:
+    return {"description": description, "schema": {"type": "string"}}

@@ -6,6 +6,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, Response, status
 from starlette.datastructures import UploadFile
+from starlette.exceptions import HTTPException
 
 from service.auth import AdminAccess, ReadAccess
 from service.catalog import Catalog
@@ -66,11 +67,17 @@ async def register(
 ) -> ReferenceResponse:
     """JSON ``{"name", "points"}``, or multipart ``name`` + ``file`` (STL, OBJ, PLY, PCD, NPY)."""
     if body_kind(request, JSON, MULTIPART) == MULTIPART:
-        async with request.form(max_files=1, max_fields=4) as form:
-            name, upload = form.get("name"), form.get("file")
-            if not isinstance(upload, UploadFile):
-                raise invalid("upload the mesh or cloud as a file field", "file")
-            source = (await upload.read(), upload.filename)
+        try:
+            async with request.form(max_files=1, max_fields=4) as form:
+                name, upload = form.get("name"), form.get("file")
+                if not isinstance(upload, UploadFile):
+                    raise invalid("upload the mesh or cloud as a file field", "file")
+                source = (await upload.read(), upload.filename)
+        except HTTPException as error:  # Starlette's 400 for a malformed multipart body
+            raise invalid(
+                f"the multipart body is unusable ({error.detail}): send a 'name' field and a "
+                "'file' field"
+            ) from None
         fields = {} if name is None else {"name": name}
     else:
         fields, source = json_object(await request.body()), None

@@ -1,0 +1,453 @@
+"""Sustained load on the service: a fixed rate of /align, with registrations and deletions.
+
+Starts ``python -m service`` on a free loopback port with a fresh data directory and an admin
+key (or uses ``--url`` of a running one), sends 2,048-point clouds of the seed gallery's
+objects at random poses to ``POST /align`` at ``--rate`` requests a second for ``--duration``
+seconds (open loop: a slow answer does not slow the sender; at most ``--max-in-flight`` wait
+at once, beyond that a request is counted as dropped), and registers a new reference every
+``--write-every`` seconds, deleting every other one again. Then it checks that every
+acknowledged registration is there, byte for byte, and every acknowledged deletion is gone,
+removes what it registered, and prints: requests served, answers by status, p50/p99
+latency, the achieved rate, and the server's resident memory at the start and the end.
+
+``--find-max`` ramps the rate instead (x1.5 a step of ``--step-duration`` seconds) until the
+service stops keeping up (errors, p99 over ``--p99-budget-ms``, or under 90 % of the rate
+achieved) and reports the highest rate it sustained.
+
+    python scripts/load.py --rate 5 --duration 30
+    python scripts/load.py --find-max --step-duration 10
+    python scripts/load.py --url http://127.0.0.1:8000 --key "$KEY" --pid "$SERVICE_PID"
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import hashlib
+import json
+import os
+import secrets
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+from service.gallery import load_gallery  # noqa: E402 - numpy only, no server code
+from service.settings import Settings  # noqa: E402
+
+CLOUD_POINTS = 2048
+MAX_DURATION_S = 3600  # bounded, whatever is asked
+MAX_RATE = 500.0
+
+
+# --- the server under load ----------------------------------------------------------------
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+class OwnServer:
+    """``python -m service`` on loopback with a fresh data directory and an admin key."""
+
+    def __init__(self, workdir: Path):
+        self.key = secrets.token_urlsafe(24)
+        port = free_port()
+        self.url = f"http://127.0.0.1:{port}"
+        env = {k: v for k, v in os.environ.items() if not k.startswith("DPC_")}
+        model = Settings().model  # the model the caller's environment names
+        env |= {
+            "DPC_MODEL__PATH": str(model.path),
+            "DPC_MODEL__GALLERY": str(model.gallery),
+            "DPC_GALLERY__DATA_DIR": str(workdir / "data"),
+            "DPC_SERVER__HOST": "127.0.0.1",
+            "DPC_SERVER__PORT": str(port),
+            "DPC_SERVER__LOG_LEVEL": "warning",
+            "DPC_AUTH__KEYS": json.dumps({self.key: "admin"}),
+        }
+        self.log = open(workdir / "service.log", "wb")
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "service"], cwd=REPO, env=env, stdout=self.log, stderr=self.log
+        )
+        self.pid = self.process.pid
+
+    def wait_ready(self, timeout_s: float = 120) -> None:
+        deadline = time.monotonic() + timeout_s
+        with httpx.Client(base_url=self.url, timeout=5) as client:
+            while time.monotonic() < deadline:
+                if self.process.poll() is not None:
+                    raise SystemExit(f"the service exited with status {self.process.returncode}")
+                try:
+                    if client.get("/v2/health/ready").status_code == 200:
+                        return
+                except httpx.TransportError:
+                    pass
+                time.sleep(0.1)
+        raise SystemExit(f"the service was not ready in {timeout_s} s")
+
+    def stop(self) -> None:
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+            try:
+                self.process.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self.log.close()
+
+
+def rss_mib(pid: int | None) -> float | None:
+    """Resident memory of a process (Linux /proc), MiB."""
+    if pid is None:
+        return None
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        return None
+    return None
+
+
+# --- what is sent -------------------------------------------------------------------------
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=4)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def scene_clouds(gallery: Path, count: int, seed: int = 0) -> list[bytes]:
+    """Raw float32 bodies: 2,048 points of a gallery object each, at a random pose."""
+    rng = np.random.default_rng(seed)
+    if gallery.exists():
+        objects = [reference.points for reference in load_gallery(gallery)[0]]
+    else:  # no gallery file at hand: boxes
+        objects = [new_reference(rng) for _ in range(4)]
+    bodies = []
+    for index in range(count):
+        points = objects[index % len(objects)]
+        chosen = rng.choice(len(points), CLOUD_POINTS, replace=len(points) < CLOUD_POINTS)
+        scale = float(np.abs(points).max())
+        scene = points[chosen] @ random_rotation(rng).T + rng.uniform(-0.5, 0.5, 3) * scale
+        scene += rng.normal(scale=0.002 * scale, size=scene.shape)
+        bodies.append(scene.astype("<f4").tobytes())
+    return bodies
+
+
+def new_reference(rng: np.random.Generator) -> np.ndarray:
+    """1,024 points on the surface of a box of random extents."""
+    points = rng.uniform(-1, 1, size=(1024, 3))
+    rows, face = np.arange(len(points)), rng.integers(0, 3, len(points))
+    points[rows, face] = np.sign(points[rows, face])  # pushed onto one of the six faces
+    return (points * rng.uniform(0.05, 0.5, 3)).astype(np.float32)
+
+
+def sha(points: np.ndarray) -> str:
+    return hashlib.sha256(points.astype("<f4").tobytes()).hexdigest()
+
+
+# --- the load -----------------------------------------------------------------------------
+
+
+@dataclass
+class Tally:
+    statuses: Counter = field(default_factory=Counter)  # "align 200", "register 201", ...
+    latencies_ms: list[float] = field(default_factory=list)  # of the alignments answered
+    transport_errors: int = 0
+    dropped: int = 0  # not sent: --max-in-flight requests were already waiting
+    sent: int = 0
+
+    def record(self, kind: str, status: int, began: float) -> None:
+        self.statuses[f"{kind} {status}"] += 1
+        if kind == "align":
+            self.latencies_ms.append((time.perf_counter() - began) * 1e3)
+
+
+@dataclass
+class Writes:
+    kept: dict[str, str] = field(default_factory=dict)  # acknowledged registrations: name -> sha
+    deleted: set[str] = field(default_factory=set)  # acknowledged deletions
+    unsure: set[str] = field(default_factory=set)  # no answer: either outcome is fine
+
+
+async def align_once(client: httpx.AsyncClient, body: bytes, tally: Tally) -> None:
+    began = time.perf_counter()
+    try:
+        response = await client.post(
+            "/align", content=body, headers={"content-type": "application/octet-stream"}
+        )
+    except httpx.HTTPError:
+        tally.transport_errors += 1
+        return
+    tally.record("align", response.status_code, began)
+
+
+async def write_loop(
+    client: httpx.AsyncClient, every_s: float, until: float, writes: Writes, tally: Tally, tag: str
+) -> None:
+    """Register one reference every ``every_s`` seconds; delete every other one again."""
+    rng = np.random.default_rng(1)
+    index = 0
+    loop = asyncio.get_running_loop()
+    start = loop.time()
+    while start + (index + 1) * every_s < until:
+        await asyncio.sleep(max(0.0, start + (index + 1) * every_s - loop.time()))  # on schedule
+        name = f"load-{tag}-{index}"
+        points = new_reference(rng)
+        began = time.perf_counter()
+        try:
+            response = await client.post(
+                "/references?self_check=false", json={"name": name, "points": points.tolist()}
+            )
+            tally.record("register", response.status_code, began)
+            if response.status_code == 201:
+                writes.kept[name] = sha(points)
+        except httpx.HTTPError:
+            tally.transport_errors += 1
+            writes.unsure.add(name)
+        if index % 2 == 1:  # delete the one before
+            victim = f"load-{tag}-{index - 1}"
+            if victim in writes.kept:
+                began = time.perf_counter()
+                try:
+                    response = await client.delete(f"/references/{victim}")
+                    tally.record("delete", response.status_code, began)
+                    if response.status_code == 204:
+                        del writes.kept[victim]
+                        writes.deleted.add(victim)
+                except httpx.HTTPError:
+                    tally.transport_errors += 1
+                    writes.unsure.add(victim)
+        index += 1
+
+
+async def hold_rate(
+    client: httpx.AsyncClient,
+    bodies: list[bytes],
+    rate: float,
+    duration_s: float,
+    max_in_flight: int,
+    tally: Tally,
+) -> float:
+    """Send at ``rate`` for ``duration_s`` (open loop); returns the seconds it all took."""
+    loop = asyncio.get_running_loop()
+    start = loop.time()
+    in_flight: set[asyncio.Task] = set()
+    total = int(rate * duration_s)
+    for index in range(total):
+        await asyncio.sleep(max(0.0, start + index / rate - loop.time()))
+        if len(in_flight) >= max_in_flight:
+            tally.dropped += 1
+            continue
+        task = asyncio.create_task(align_once(client, bodies[index % len(bodies)], tally))
+        in_flight.add(task)
+        task.add_done_callback(in_flight.discard)
+        tally.sent += 1
+    if in_flight:
+        await asyncio.wait(in_flight, timeout=60)
+    return max(loop.time() - start, duration_s)  # the schedule spans duration_s
+
+
+async def verify(client: httpx.AsyncClient, writes: Writes) -> dict[str, int]:
+    """Acknowledged registrations present and identical; acknowledged deletions gone."""
+    lost = changed = resurrected = 0
+    for name, digest in writes.kept.items():
+        response = await client.get(f"/references/{name}")
+        if response.status_code != 200:
+            lost += 1
+        elif response.json().get("points_sha256") != digest:
+            changed += 1
+    for name in writes.deleted:
+        if (await client.get(f"/references/{name}")).status_code != 404:
+            resurrected += 1
+    return {"lost": lost, "changed": changed, "resurrected": resurrected}
+
+
+async def clean_up(client: httpx.AsyncClient, writes: Writes) -> None:
+    for name in [*writes.kept, *writes.unsure]:
+        await client.delete(f"/references/{name}")
+
+
+def percentile(values: list[float], q: float) -> float | None:
+    return round(float(np.percentile(values, q)), 1) if values else None
+
+
+def summary(tally: Tally, rate: float, elapsed_s: float) -> dict:
+    answered = sum(n for key, n in tally.statuses.items() if key.startswith("align "))
+    ok = tally.statuses.get("align 200", 0)
+    by_status = Counter()
+    for key, n in tally.statuses.items():
+        by_status[int(key.split()[1])] += n
+    return {
+        "target_rate": rate,
+        "achieved_rate": round(ok / elapsed_s, 2) if elapsed_s else 0.0,
+        "align_sent": tally.sent,
+        "align_answered": answered,
+        "align_ok": ok,
+        "dropped": tally.dropped,
+        "transport_errors": tally.transport_errors,
+        "p50_ms": percentile(tally.latencies_ms, 50),
+        "p99_ms": percentile(tally.latencies_ms, 99),
+        "statuses": dict(sorted(tally.statuses.items())),
+        "errors_4xx": sum(n for s, n in by_status.items() if 400 <= s < 500),
+        "errors_5xx": sum(n for s, n in by_status.items() if s >= 500),
+        "elapsed_s": round(elapsed_s, 1),
+    }
+
+
+async def run(args: argparse.Namespace, url: str, key: str | None, pid: int | None) -> dict:
+    headers = {"Authorization": f"Bearer {key}"} if key else {}
+    limits = httpx.Limits(max_connections=args.max_in_flight + 4)
+    bodies = scene_clouds(args.gallery, 64)
+    async with httpx.AsyncClient(
+        base_url=url, headers=headers, timeout=60, limits=limits
+    ) as client:
+        health = (await client.get("/health")).json()
+        rss_start = rss_mib(pid)
+        tag = secrets.token_hex(3)
+        if args.find_max:
+            steps = await find_max(client, bodies, args)
+            result: dict = {"mode": "find-max", "steps": steps}
+            passed = [step["target_rate"] for step in steps if step["kept_up"]]
+            result["max_sustained_rate"] = max(passed) if passed else None
+        else:
+            tally, writes = Tally(), Writes()
+            until = asyncio.get_running_loop().time() + args.duration
+            writer = asyncio.create_task(
+                write_loop(client, args.write_every, until, writes, tally, tag)
+            )
+            elapsed = await hold_rate(
+                client, bodies, args.rate, args.duration, args.max_in_flight, tally
+            )
+            await writer
+            result = {"mode": "rate", **summary(tally, args.rate, elapsed)}
+            result["references"] = {
+                "registered": len(writes.kept) + len(writes.deleted),
+                "deleted": len(writes.deleted),
+                **await verify(client, writes),
+            }
+            await clean_up(client, writes)
+        result["gallery_references"] = health.get("references")
+        result["rss_mib_start"] = rss_start and round(rss_start, 1)
+        result["rss_mib_end"] = (end := rss_mib(pid)) and round(end, 1)
+    return result
+
+
+async def find_max(client: httpx.AsyncClient, bodies: list[bytes], args) -> list[dict]:
+    steps, rate = [], args.start_rate
+    for _ in range(args.max_steps):
+        tally = Tally()
+        elapsed = await hold_rate(
+            client, bodies, rate, args.step_duration, args.max_in_flight, tally
+        )
+        step = summary(tally, rate, elapsed)
+        step["kept_up"] = bool(
+            step["errors_5xx"] == 0
+            and step["transport_errors"] == 0
+            and step["dropped"] == 0
+            and step["p99_ms"] is not None
+            and step["p99_ms"] <= args.p99_budget_ms
+            and step["achieved_rate"] >= 0.9 * rate
+        )
+        steps.append(step)
+        print(
+            f"  rate {rate:7.2f}/s: achieved {step['achieved_rate']:7.2f}/s, p50 "
+            f"{step['p50_ms']} ms, p99 {step['p99_ms']} ms, 5xx {step['errors_5xx']}, "
+            f"dropped {step['dropped']} -> {'ok' if step['kept_up'] else 'saturated'}",
+            flush=True,
+        )
+        if not step["kept_up"]:
+            break
+        rate = min(MAX_RATE, rate * 1.5)
+    return steps
+
+
+def report(result: dict) -> None:
+    if result["mode"] == "find-max":
+        print(f"maximum sustained rate: {result['max_sustained_rate']} alignments/s")
+    else:
+        refs = result["references"]
+        print(
+            f"served {result['align_ok']} of {result['align_sent']} alignments in "
+            f"{result['elapsed_s']} s: {result['achieved_rate']}/s (target "
+            f"{result['target_rate']}/s), p50 {result['p50_ms']} ms, p99 {result['p99_ms']} ms"
+        )
+        print(f"answers: {result['statuses']}")
+        print(
+            f"errors: 4xx {result['errors_4xx']}, 5xx {result['errors_5xx']}, transport "
+            f"{result['transport_errors']}, dropped {result['dropped']}"
+        )
+        print(
+            f"references: {refs['registered']} registered, {refs['deleted']} deleted; lost "
+            f"{refs['lost']}, changed {refs['changed']}, resurrected {refs['resurrected']}"
+        )
+    print(f"server memory (RSS): {result['rss_mib_start']} MiB -> {result['rss_mib_end']} MiB")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--url", help="a running service (loopback); default: start one")
+    parser.add_argument("--key", default=os.environ.get("DPC_LOAD_KEY"), help="an admin key")
+    parser.add_argument("--pid", type=int, help="the running service's process id (for RSS)")
+    parser.add_argument("--rate", type=float, default=5.0, help="alignments a second")
+    parser.add_argument("--duration", type=float, default=30.0, help="seconds")
+    parser.add_argument("--write-every", type=float, default=2.0, help="seconds between writes")
+    parser.add_argument("--max-in-flight", type=int, default=32)
+    parser.add_argument("--gallery", type=Path, default=Settings().model.gallery)
+    parser.add_argument("--find-max", action="store_true", help="ramp the rate to saturation")
+    parser.add_argument("--start-rate", type=float, default=2.0)
+    parser.add_argument("--step-duration", type=float, default=10.0)
+    parser.add_argument("--max-steps", type=int, default=12)
+    parser.add_argument("--p99-budget-ms", type=float, default=2000.0)
+    parser.add_argument("--json", action="store_true", help="also print the result as JSON")
+    args = parser.parse_args(argv)
+    args.rate = min(max(args.rate, 0.1), MAX_RATE)
+    args.duration = min(max(args.duration, 1.0), MAX_DURATION_S)
+    args.step_duration = min(max(args.step_duration, 1.0), MAX_DURATION_S / args.max_steps)
+
+    if args.url:
+        host = httpx.URL(args.url).host
+        if host not in ("127.0.0.1", "localhost", "::1"):
+            parser.error("--url must be a loopback address: this script is for the bench")
+        result = asyncio.run(run(args, args.url, args.key, args.pid))
+    else:
+        with tempfile.TemporaryDirectory(prefix="dpc-load-") as workdir:
+            server = OwnServer(Path(workdir))
+            try:
+                server.wait_ready()
+                result = asyncio.run(run(args, server.url, server.key, server.pid))
+            finally:
+                server.stop()
+    report(result)
+    if args.json:
+        print(json.dumps(result))
+    if result["mode"] == "rate":
+        refs = result["references"]
+        failed = result["errors_5xx"] or refs["lost"] or refs["changed"] or refs["resurrected"]
+        return 1 if failed else 0
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,248 @@
+"""Limits: slots and the queue (503 + Retry-After), the time budget (504), points, bodies and
+the number of references. The limiter alone first, then over HTTP against a real server."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+
+from service.limiter import Abandoned, Busy, Job, Limiter, TimedOut
+from service.settings import GallerySettings, LimitSettings, Settings
+from tests.servers import MODEL, ThreadServer
+
+
+def sleeper(seconds: float, value: object = None):
+    def work(*args):
+        time.sleep(seconds)
+        return value
+
+    return work
+
+
+def run(coroutine):
+    return asyncio.run(coroutine)
+
+
+# --- the limiter alone ------------------------------------------------------------------
+
+
+def test_a_request_that_finds_every_slot_taken_waits_then_gets_busy():
+    async def scenario():
+        limiter = Limiter(align_slots=1, queue_timeout_s=0.1, request_timeout_s=5)
+        first = asyncio.create_task(limiter.align(sleeper(0.5, "first")))
+        await asyncio.sleep(0.05)
+        began = time.perf_counter()
+        with pytest.raises(Busy) as busy:
+            await limiter.align(sleeper(0, "second"))
+        waited = time.perf_counter() - began
+        assert 0.09 < waited < 0.4
+        assert busy.value.headers == {"Retry-After": "1"}
+        assert "busy" in str(busy.value)
+        assert await first == "first"
+        assert await limiter.align(sleeper(0, "third")) == "third"  # the slot is free again
+        limiter.close()
+
+    run(scenario())
+
+
+def test_requests_within_the_slots_and_queue_all_run():
+    async def scenario():
+        limiter = Limiter(align_slots=2, queue_timeout_s=2, request_timeout_s=5)
+        results = await asyncio.gather(*(limiter.align(sleeper(0.1, i)) for i in range(6)))
+        assert results == list(range(6))
+        limiter.close()
+
+    run(scenario())
+
+
+def test_a_timed_out_request_stops_waiting_but_its_thread_keeps_the_slot():
+    async def scenario():
+        limiter = Limiter(align_slots=1, queue_timeout_s=0.05, request_timeout_s=0.2)
+        done = threading.Event()
+
+        def slow():
+            time.sleep(0.6)
+            done.set()
+
+        began = time.perf_counter()
+        with pytest.raises(TimedOut, match="budget of 0.2 s"):
+            await limiter.align(slow)
+        assert time.perf_counter() - began < 0.5 and not done.is_set()
+        with pytest.raises(Busy):  # the abandoned thread still runs: its slot is taken
+            await limiter.align(sleeper(0))
+        await asyncio.sleep(0.6)
+        assert done.is_set()  # it finished on its own
+        assert await limiter.align(sleeper(0, "after")) == "after"
+        limiter.close()
+
+    run(scenario())
+
+
+def test_a_write_abandoned_by_a_timeout_never_commits():
+    stored = []
+
+    def register(job, name):
+        time.sleep(0.4)  # the slow part, before the durable step
+        job.commit()
+        stored.append(name)
+
+    async def scenario():
+        limiter = Limiter(align_slots=1, queue_timeout_s=1, request_timeout_s=0.1)
+        with pytest.raises(TimedOut):
+            await limiter.write(register, "late")
+        await asyncio.sleep(0.5)
+        limiter.close()
+
+    run(scenario())
+    assert stored == []
+
+
+def test_a_write_that_committed_is_waited_for_past_the_budget():
+    def register(job, name):
+        job.commit()
+        time.sleep(0.3)  # after the durable step: the request waits for the outcome
+        return name
+
+    async def scenario():
+        limiter = Limiter(align_slots=1, queue_timeout_s=1, request_timeout_s=0.1)
+        assert await limiter.write(register, "kept") == "kept"
+        limiter.close()
+
+    run(scenario())
+
+
+def test_writes_do_not_queue_behind_alignments():
+    async def scenario():
+        limiter = Limiter(align_slots=1, queue_timeout_s=0.05, request_timeout_s=5)
+        busy = asyncio.create_task(limiter.align(sleeper(0.4)))
+        await asyncio.sleep(0.05)
+        began = time.perf_counter()
+        assert await limiter.write(lambda job: "written") == "written"
+        assert time.perf_counter() - began < 0.2
+        await busy
+        limiter.close()
+
+    run(scenario())
+
+
+def test_an_abandoned_job_refuses_to_commit():
+    job = Job()
+    assert job.abandon()
+    with pytest.raises(Abandoned):
+        job.commit()
+    committed = Job()
+    committed.commit()
+    assert not committed.abandon()
+
+
+# --- over HTTP ----------------------------------------------------------------------------
+
+needs_model = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
+MAX_POINTS, MAX_BODY = 5_000, 256 * 1024
+
+
+def cloud(count: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return (rng.normal(size=(count, 3)) * [0.1, 0.2, 0.3]).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def limited(tmp_path_factory):
+    data_dir = tmp_path_factory.mktemp("limited")
+    settings = Settings(
+        model=MODEL.model_copy(update={"gallery": data_dir / "no-seed.npz"}),
+        gallery=GallerySettings(data_dir=data_dir, self_check_poses=0, max_references=2),
+        limits=LimitSettings(
+            min_points=50,
+            max_points=MAX_POINTS,
+            max_body_bytes=MAX_BODY,
+            max_concurrent_align=1,
+            queue_timeout_s=0.3,
+            request_timeout_s=1.0,
+        ),
+    )
+    server = ThreadServer(settings)
+    registered = server.client.post(
+        "/references", json={"name": "base", "points": cloud(400).tolist()}
+    )
+    assert registered.status_code == 201, registered.text
+    yield server
+    server.stop()
+
+
+@needs_model
+def test_busy_and_timed_out_answers_over_http(limited, monkeypatch):
+    engine = limited.app.state.catalog.engine
+    original = engine.align
+
+    def slow_align(*args, **kwargs):
+        time.sleep(1.6)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(engine, "align", slow_align)
+    body = {"points": cloud(200).tolist()}
+    with ThreadPoolExecutor(2) as pool:
+        slow = pool.submit(limited.client.post, "/align", json=body)
+        time.sleep(0.2)
+        began = time.perf_counter()
+        refused = limited.client.post("/align", json=body)
+        waited = time.perf_counter() - began
+        timed_out = slow.result()
+    assert refused.status_code == 503, refused.text
+    assert refused.headers["retry-after"] == "1" and "busy" in refused.json()["detail"]
+    assert 0.25 < waited < 1.0
+    assert timed_out.status_code == 504, timed_out.text
+    assert "budget of 1 s" in timed_out.json()["detail"]
+    time.sleep(0.8)  # the abandoned alignment finishes on its own and frees its slot
+    monkeypatch.setattr(engine, "align", original)
+    assert limited.client.post("/align", json=body).status_code == 200
+
+
+@needs_model
+def test_a_registration_that_times_out_stores_nothing(limited, monkeypatch):
+    engine = limited.app.state.catalog.engine
+    original = engine.make_reference
+
+    def slow_reference(*args, **kwargs):
+        time.sleep(1.3)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(engine, "make_reference", slow_reference)
+    body = {"name": "late", "points": cloud(300).tolist()}
+    response = limited.client.post("/references", json=body)
+    assert response.status_code == 504, response.text
+    time.sleep(0.6)  # the thread has finished by now, and refused to commit
+    assert limited.client.get("/references/late").status_code == 404
+    monkeypatch.setattr(engine, "make_reference", original)
+    assert limited.client.get("/v2/health/ready").status_code == 200
+
+
+@needs_model
+def test_point_body_and_gallery_limits(limited):
+    client = limited.client
+    few = client.post("/align", json={"points": cloud(49).tolist()})
+    assert few.status_code == 422 and "minimum of 50" in few.json()["detail"]
+    many = client.post("/align", json={"points": cloud(MAX_POINTS + 1).tolist()})
+    assert many.status_code in (413, 422)  # whichever limit the body meets first
+    raw = client.post(
+        "/align",
+        content=cloud(MAX_POINTS + 1).tobytes(),
+        headers={"content-type": "application/octet-stream"},
+    )
+    assert raw.status_code == 422 and "maximum of 5000" in raw.json()["detail"]
+    big = client.post(
+        "/align",
+        content=b"\0" * (MAX_BODY + 12),
+        headers={"content-type": "application/octet-stream"},
+    )
+    assert big.status_code == 413 and "limit" in big.json()["detail"]
+    first = client.post("/references", json={"name": "last-one", "points": cloud(300).tolist()})
+    assert first.status_code == 201, first.text
+    full = client.post("/references", json={"name": "one-more", "points": cloud(300).tolist()})
+    assert full.status_code == 409 and "maximum" in full.json()["detail"]
+    assert client.delete("/references/last-one").status_code == 204

@@ -1,0 +1,39 @@
+"""A short sustained-load run (scripts/load.py) against a real ``python -m service``: a fixed
+rate of alignments with registrations and deletions beside them; no 5xx, nothing lost."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from tests.servers import MODEL, REPO
+
+pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
+
+RATE, DURATION_S = 2, 20  # well under what 2 busy cores sustain (scripts/load.py --find-max)
+
+
+def test_a_short_sustained_load(tmp_path):
+    command = [
+        sys.executable,
+        str(REPO / "scripts" / "load.py"),
+        f"--rate={RATE}",
+        f"--duration={DURATION_S}",
+        "--write-every=2",
+        "--json",
+    ]
+    done = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=180)
+    print(done.stdout)
+    assert done.returncode == 0, done.stdout + done.stderr
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    assert result["errors_5xx"] == 0 and result["transport_errors"] == 0
+    assert result["align_sent"] == RATE * DURATION_S and result["dropped"] == 0
+    assert result["align_ok"] == result["align_sent"]  # gallery objects: every one recognised
+    assert result["achieved_rate"] >= 0.8 * RATE
+    references = result["references"]
+    assert references["registered"] >= 5 and references["deleted"] >= 2  # one every 2 s
+    assert references["lost"] == references["changed"] == references["resurrected"] == 0
+    assert result["rss_mib_start"] > 0 and result["rss_mib_end"] > 0
