@@ -1,0 +1,65 @@
+"""The evaluation: an oracle scores perfectly, and the quick run writes its whole report."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.sampling import sample_surface
+from training.cases import make_cases, object_scale
+from training.evaluate import Truth, case_record
+from training.metrics import diameter, summarize
+from training.report import PLOTS
+
+from .conftest import pybullet_mesh
+
+
+def test_an_oracle_scores_perfectly():
+    """Answers at the true pose with the true label: every metric at its best, the alignment
+    error at its floor."""
+    meshes = {"duck": pybullet_mesh("duck.obj"), "mug": pybullet_mesh("objects/mug.obj")}
+    references = {name: sample_surface(mesh, 2048, 0) for name, mesh in meshes.items()}
+    truths = {
+        name: Truth(points.astype(np.float64), object_scale(points), diameter(points), "seen")
+        for name, points in references.items()
+    }
+    scales = {name: truth.scale for name, truth in truths.items()}
+    records = []
+    for family in ("paper-poses", "so3", "partial"):
+        for case in make_cases(family, meshes, scales, 512, seed=5, poses_per_object=2):
+            record = case_record(
+                case, truths, case.object_name, case.rotation, case.translation, 1.0
+            )
+            assert record["align_err"] == pytest.approx(record["align_err_floor"], abs=1e-9)
+            records.append(record)
+    summary = summarize(records)
+    assert summary["accuracy"] == summary["success"] == summary["precise"] == 1.0
+    assert summary["median_rot_err_deg"] < 1e-3
+    assert summary["median_add_s"] < 1e-6
+    other = "mug" if case.object_name == "duck" else "duck"
+    wrong = case_record(case, truths, other, case.rotation, case.translation, 1.0)
+    assert not wrong["label_ok"]
+    assert summarize([wrong])["success"] == 0.0
+
+
+@pytest.mark.slow
+def test_quick_run_writes_the_report(tmp_path: Path):
+    pytest.importorskip("cv2")
+    pytest.importorskip("open3d")
+    pytest.importorskip("pybullet_data")
+    from training.evaluate import main
+
+    main(["--quick", "--out", str(tmp_path)])
+    readme = (tmp_path / "README.md").read_text()
+    for heading in ("## Machine and run", "## Targets", "## Tables: side-by-side", "## Latency"):
+        assert heading in readme
+    results = json.loads((tmp_path / "results.json").read_text())
+    systems = {r["system"] for r in results["records"]}
+    assert {"engine", "engine-no-refine", "engine-paper", "ppf", "fpfh"} <= systems
+    assert results["http"]["cases"] > 0
+    assert len(results["targets"]) == 8
+    for name in PLOTS.values():
+        assert (tmp_path / name).stat().st_size > 1000, name
