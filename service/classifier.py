@@ -53,7 +53,9 @@ class LinearClassifier:
         feature_mean, target_mean = features.mean(axis=0), targets.mean(axis=0)
         x, y = features - feature_mean, (targets - target_mean).astype(np.float32)
         scatter = (x.T @ x).astype(np.float64)  # (d, d): the cost grows linearly with the views
-        scatter[np.diag_indices_from(scatter)] += ridge * np.trace(scatter) / len(scatter)
+        # the ridge is relative to the features' variance, with a floor for a gallery of one
+        # view (zero scatter), where the solve would otherwise be singular
+        scatter[np.diag_indices_from(scatter)] += ridge * (np.trace(scatter) / len(scatter) or 1.0)
         weights = np.linalg.solve(scatter, (x.T @ y).astype(np.float64)).astype(np.float32)
         bias = target_mean - feature_mean @ weights
         weights = weights.T.astype(np.float32)

@@ -75,6 +75,7 @@ class Entry:
 class Snapshot:
     entries: dict[str, Entry]
     classifier: LinearClassifier | None
+    scales: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per classifier row
 
 
 class Stopwatch:
@@ -146,7 +147,8 @@ class Engine:
                 self.settings.classifier_ridge,
                 self.settings.grid_blur,
             )
-        self._snapshot = Snapshot(entries, classifier)
+        scales = np.array([entry.reference.scale for entry in entries.values()])
+        self._snapshot = Snapshot(entries, classifier, scales)
 
     def names(self) -> list[str]:
         return list(self._snapshot.entries)
@@ -298,9 +300,7 @@ class Engine:
         (measured on the evaluation's cases), so a size far outside that is another part.
         """
         low, high = self.settings.size_ratio
-        scales = np.array(
-            [snapshot.entries[snapshot.classifier.labels[r]].reference.scale for r in rows]
-        )
+        scales = snapshot.scales[rows]
         plausible = rows[(observed >= low * scales) & (observed <= high * scales)]
         return plausible if len(plausible) else rows
 

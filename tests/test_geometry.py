@@ -132,3 +132,11 @@ def test_refitting_the_classifier_for_100_references_needs_no_iterations():
         for i, f in enumerate(features)
     ]
     assert np.mean(hits) == 1.0  # a training view is classified as its reference
+
+
+def test_a_gallery_of_one_reference_with_one_view_fits():
+    features = [classifier_input(np.zeros((1, GRID_SIZE, GRID_SIZE)), 1.0)]
+    classifier = LinearClassifier.fit(["only"], features, blur=1.0)
+    assert np.isfinite(classifier.weights).all() and classifier.scores(
+        np.zeros((64, 64))
+    ).shape == (1,)
