@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -63,11 +63,12 @@ class Entry:
 
     @classmethod
     def of(cls, reference: Reference, blur: float) -> Entry:
-        """The view grids (0.5 MB a reference) are kept only as the classifier's features,
-        a quarter of their size; the store holds the grids themselves."""
-        features = classifier_input(reference.view_grids, blur)
-        kept = replace(reference, view_grids=reference.view_grids[:0])
-        return cls(kept, cKDTree(reference.points), cKDTree(reference.mapped), features)
+        return cls(
+            reference,
+            cKDTree(reference.points),
+            cKDTree(reference.mapped),
+            classifier_input(reference.view_grids, blur),
+        )
 
 
 @dataclass(frozen=True)
