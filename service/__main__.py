@@ -27,13 +27,13 @@ def main() -> None:
         fail(f"invalid settings: {error}; a group's value is JSON, e.g. DPC_AUTH__KEYS='{{...}}'")
     startup.quiet_onnxruntime()
     try:
-        startup.prepare(settings)  # the lifespan prepares again, cheaply; this fails cleanly
+        prepared = startup.prepare(settings)  # here, so that a failure ends with one line
     except startup.StartupError as error:
         fail(str(error))
     logs.configure(settings.server.log_level, settings.server.log_format)
     # the lifespan logs the model's path, hash and execution providers once they are loaded
     uvicorn.run(
-        create_app(settings),
+        create_app(settings, prepared),
         host=settings.server.host,
         port=settings.server.port,
         log_level=settings.server.log_level,

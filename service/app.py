@@ -30,11 +30,12 @@ from service.dependencies import Loading, NotReady
 from service.engine import Engine
 from service.errors import EmptyGallery, InvalidPoints, ReferenceExists, UnknownReference
 from service.limiter import Busy, Limiter, TimedOut
+from service.mapping import Mapper
 from service.routes import align, health, references
 from service.routes.common import UnsupportedMediaType
 from service.schemas import AlignRequest, ReferenceRequest
 from service.settings import Settings
-from service.store import StoreCorrupted
+from service.store import GalleryStore, StoreCorrupted
 
 log = logging.getLogger("service")
 
@@ -57,7 +58,10 @@ class BodyTooLarge(Exception):
     """A request body over ``limits.max_body_bytes`` (413)."""
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
+def create_app(
+    settings: Settings | None = None, prepared: tuple[Mapper, GalleryStore] | None = None
+) -> FastAPI:
+    """The app; ``prepared`` is ``startup.prepare``'s result when the caller already ran it."""
     settings = settings or Settings()
     app = FastAPI(
         title="DPC-MN pose service",
@@ -66,6 +70,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
     )
     app.state.settings = settings
+    app.state.prepared = prepared
     for router in (align.router, references.router, health.router):
         app.include_router(router)
     _add_error_handlers(app)
@@ -79,7 +84,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 @asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
-    mapper, store = startup.prepare(settings)
+    mapper, store = app.state.prepared or startup.prepare(settings)
     log.info(
         "model %s (sha256 %s), execution providers %s",
         mapper.path,

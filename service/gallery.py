@@ -16,8 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-from service.grid import grid
-
 
 @dataclass(frozen=True)
 class Reference:
@@ -32,11 +30,6 @@ class Reference:
         """sha256 of the points as little-endian float32 x y z triples, row after row: what a
         client computes of the points it sent, to check the service holds exactly those."""
         return points_sha256(self.points)
-
-    @property
-    def grid(self) -> np.ndarray:
-        """The reference's own 64x64 grid, as eq. (4) sees it."""
-        return grid(self.mapped)
 
 
 def points_sha256(points: np.ndarray) -> str:

@@ -37,6 +37,7 @@ class Mapper:
         intra_op_threads: int = 2,
         inter_op_threads: int = 1,
         use_cuda: bool = True,
+        model_hash: str | None = None,  # when the caller has already read the file
     ):
         options = ort.SessionOptions()
         options.intra_op_num_threads = intra_op_threads
@@ -47,14 +48,16 @@ class Mapper:
         self.path = Path(path)
         self.session = ort.InferenceSession(str(path), options, providers=providers)
         self.providers: list[str] = self.session.get_providers()
-        self.model_hash = file_sha256(self.path)
+        self.model_hash = model_hash or file_sha256(self.path)
         metadata = self.session.get_modelmeta().custom_metadata_map
         self.canonical = metadata.get("canonical", "false") == "true"
         self.metadata = dict(metadata)
 
     @classmethod
-    def from_settings(cls, model: ModelSettings) -> Mapper:
-        return cls(model.path, model.intra_op_threads, model.inter_op_threads, model.use_cuda)
+    def from_settings(cls, model: ModelSettings, model_hash: str | None = None) -> Mapper:
+        return cls(
+            model.path, model.intra_op_threads, model.inter_op_threads, model.use_cuda, model_hash
+        )
 
     def map(self, normalized: np.ndarray) -> np.ndarray:
         """Mapped coordinates (N, 2) of normalised points (N, 3)."""

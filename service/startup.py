@@ -32,8 +32,8 @@ class StartupError(RuntimeError):
 
 def prepare(settings: Settings) -> tuple[Mapper, GalleryStore]:
     """The loaded model and the open store, after every check."""
-    check_model_files(settings)
-    mapper = load_model(settings)
+    model_hash = check_model_files(settings)
+    mapper = load_model(settings, model_hash)
     check_data_dir(settings.gallery.data_dir)
     try:
         store = GalleryStore.in_dir(settings.gallery.data_dir)
@@ -46,8 +46,11 @@ def prepare(settings: Settings) -> tuple[Mapper, GalleryStore]:
     return mapper, store
 
 
-def check_model_files(settings: Settings) -> None:
-    """The model exists and is readable; it and the seed gallery match the manifest, if any."""
+def check_model_files(settings: Settings) -> str:
+    """The model exists and is readable; it and the seed gallery match the manifest, if any.
+
+    Returns the model's sha256, so that it is read once.
+    """
     model = settings.model.path
     if not model.is_file():
         raise StartupError(f"no ONNX model at {model}: set DPC_MODEL__PATH")
@@ -57,7 +60,7 @@ def check_model_files(settings: Settings) -> None:
         raise StartupError(f"cannot read the model {model}: {error.strerror}") from None
     manifest_path = settings.manifest_path
     if not manifest_path.exists():
-        return
+        return model_hash
     try:
         files = json.loads(manifest_path.read_text())["files"]
         expected = files[model.name]["sha256"]
@@ -81,11 +84,12 @@ def check_model_files(settings: Settings) -> None:
                 f"the seed gallery {gallery} does not match the manifest {manifest_path}: "
                 "restore both files from the same release"
             )
+    return model_hash
 
 
-def load_model(settings: Settings) -> Mapper:
+def load_model(settings: Settings, model_hash: str | None = None) -> Mapper:
     try:
-        return Mapper.from_settings(settings.model)
+        return Mapper.from_settings(settings.model, model_hash)
     except Exception as error:  # onnxruntime raises its own types for an unusable file
         first_line = str(error).strip().splitlines()[0] if str(error).strip() else ""
         raise StartupError(

@@ -27,6 +27,7 @@ from scipy.spatial.transform import Rotation
 from service.normalize import radius
 from service.sampling import sample_surface
 from service.visibility import visible_points
+from training.metrics import place
 
 FAMILIES = ("paper-poses", "sparse", "so3", "noisy", "partial")
 
@@ -104,10 +105,6 @@ def _sampling_seed(rng: np.random.Generator) -> int:
     return int(rng.integers(1, 2**31 - 1))
 
 
-def _place(points: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    return (np.asarray(points, np.float64) @ rotation.T + translation).astype(np.float32)
-
-
 def _shuffled(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.ascontiguousarray(points[rng.permutation(len(points))], dtype=np.float32)
 
@@ -144,7 +141,7 @@ def _paper_cases(
             keep = max(1, int(round(share * n_points)))
             model = model[rng.choice(n_points, size=keep, replace=False)]
             params["keep_share"] = float(share)
-        points = _shuffled(_place(model, rotation, translation), rng)
+        points = _shuffled(place(model, rotation, translation).astype(np.float32), rng)
         cases.append(Case(name, family, points, rotation, translation, params))
     return cases
 
@@ -166,9 +163,9 @@ def _random_case(
     rng = _stream(seed, family, name, case_index)
     params: dict = {"translation_norm_scales": float(np.linalg.norm(translation) / scale)}
     if family == "partial":
-        dense = _place(
+        dense = place(
             sample_surface(mesh, DENSE_FACTOR * n_points, sampling_seed), rotation, translation
-        )
+        ).astype(np.float32)
         centroid = dense.mean(axis=0).astype(np.float64)
         camera = centroid + np.array([0.0, 0.0, CAMERA_DISTANCE_SCALES * scale])
         seen = visible_points(dense, camera)
@@ -178,7 +175,9 @@ def _random_case(
         points = _shuffled(visible, rng)
         params.update(visible_share=float(seen.mean()), camera=tuple(float(c) for c in camera))
     else:
-        points = _place(sample_surface(mesh, n_points, sampling_seed), rotation, translation)
+        points = place(sample_surface(mesh, n_points, sampling_seed), rotation, translation).astype(
+            np.float32
+        )
         if family == "noisy":
             sigma = NOISE_SCALE_SHARE * scale
             points = (points + rng.normal(scale=sigma, size=points.shape)).astype(np.float32)

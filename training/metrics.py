@@ -36,7 +36,7 @@ def diameter(points: np.ndarray) -> float:
     return float(pdist(points).max())
 
 
-def _place(points: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+def place(points: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     return np.asarray(points, np.float64) @ np.asarray(rotation, np.float64).T + np.asarray(
         translation, np.float64
     )
@@ -55,8 +55,8 @@ def add_s(
 
     Symmetry-aware: a pose that differs from the truth by a symmetry of the model scores 0.
     """
-    estimated = _place(model_points, rotation_estimated, translation_estimated)
-    true = _place(model_points, rotation_true, translation_true)
+    estimated = place(model_points, rotation_estimated, translation_estimated)
+    true = place(model_points, rotation_true, translation_true)
     distances, _ = cKDTree(true).query(estimated, k=1)
     return float(distances.mean() / object_diameter)
 
