@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from service.alignment import alignment_error
-from service.classifier import LinearClassifier, classifier_input
+from service.classifier import LinearClassifier, classifier_input, view_gram
 from service.errors import EmptyGallery, UnknownReference
 from service.gallery import Reference
 from service.grid import grid
@@ -76,6 +76,7 @@ class Snapshot:
     entries: dict[str, Entry]
     classifier: LinearClassifier | None
     scales: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per classifier row
+    gram: np.ndarray | None = None  # view_gram of every entry's view features, kept by sums
 
 
 class Stopwatch:
@@ -123,22 +124,38 @@ class Engine:
         return grid(self.map(view))
 
     def load(self, references: list[Reference]) -> None:
+        entries = {r.name: Entry.of(r, self.settings.grid_blur) for r in references}
         with self._write_lock:
-            self._publish({r.name: Entry.of(r, self.settings.grid_blur) for r in references})
+            gram = view_gram([e.view_features for e in entries.values()]) if entries else None
+            self._publish(entries, gram)
 
     def add(self, reference: Reference) -> None:
+        """Add a reference, or replace the one of its name."""
         entry = Entry.of(reference, self.settings.grid_blur)
         with self._write_lock:
-            self._publish({**self._snapshot.entries, reference.name: entry})
+            entries = self._snapshot.entries
+            previous = entries.get(reference.name)
+            gram = self._gram_change(entry, +1.0)
+            if previous is not None:
+                gram -= view_gram([previous.view_features])
+            self._publish({**entries, reference.name: entry}, gram)
 
     def remove(self, name: str) -> None:
         with self._write_lock:
-            if name not in self._snapshot.entries:
+            entries = self._snapshot.entries
+            if name not in entries:
                 raise UnknownReference(f"no reference named {name!r}")
-            self._publish({k: v for k, v in self._snapshot.entries.items() if k != name})
+            rest = {k: v for k, v in entries.items() if k != name}
+            self._publish(rest, self._gram_change(entries[name], -1.0) if rest else None)
 
-    def _publish(self, entries: dict[str, Entry]) -> None:
-        """Refit the classifier on every reference's view grids and swap the snapshot."""
+    def _gram_change(self, entry: Entry, sign: float) -> np.ndarray:
+        """The snapshot's Gram with one entry's views added (+1) or taken away (-1): a refit
+        then costs the same whatever the gallery's size."""
+        change = sign * view_gram([entry.view_features])
+        return change if self._snapshot.gram is None else self._snapshot.gram + change
+
+    def _publish(self, entries: dict[str, Entry], gram: np.ndarray | None) -> None:
+        """Refit the classifier on every reference's view features and swap the snapshot."""
         classifier = None
         if entries:
             classifier = LinearClassifier.fit(
@@ -146,9 +163,10 @@ class Engine:
                 [e.view_features for e in entries.values()],
                 self.settings.classifier_ridge,
                 self.settings.grid_blur,
+                gram,
             )
         scales = np.array([entry.reference.scale for entry in entries.values()])
-        self._snapshot = Snapshot(entries, classifier, scales)
+        self._snapshot = Snapshot(entries, classifier, scales, gram)
 
     def names(self) -> list[str]:
         return list(self._snapshot.entries)
