@@ -1,8 +1,9 @@
 """The registered references, kept in step: the durable store and the engine's gallery.
 
 Every change goes to the store first (durable) and then to the engine, under one lock, so
-the two never disagree. On start the store is seeded once from the shipped gallery, and
-references whose mapped coordinates came from another model file are recomputed.
+the two never disagree; then the heap's free pages go back to the system (``service.memory``).
+On start the store is seeded once from the shipped gallery, and references whose mapped
+coordinates came from another model file are recomputed.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from service import memory
 from service.engine import Engine
 from service.errors import ReferenceExists, UnknownReference
 from service.gallery import Reference, load_gallery
@@ -52,6 +54,7 @@ class Catalog:
                 self.store.put(reference, self.model_hash, replace=True)
             references.append(reference)
         self.engine.load(references)
+        memory.release_free_heap()
         log.info("gallery loaded: %d references", len(references))
 
     def _seed(self, gallery: Path | None) -> None:
@@ -91,6 +94,7 @@ class Catalog:
                 self._restore(name, previous)
                 raise
         checks = self.engine.self_check(reference, self_check_poses) if self_check_poses else None
+        memory.release_free_heap()
         return reference, not existed, checks
 
     def remove(self, name: str, commit: Callable[[], None] = lambda: None) -> None:
@@ -106,6 +110,7 @@ class Catalog:
             except BaseException:
                 self._restore(name, previous)
                 raise
+        memory.release_free_heap()
 
     def _restore(self, name: str, previous: Reference | None) -> None:
         """Undo a store write the engine could not follow: the store keeps what it had."""
