@@ -13,7 +13,7 @@ import uvicorn
 from pydantic import ValidationError
 from pydantic_settings import SettingsError
 
-from service import logs, startup
+from service import logs, memory, startup
 from service.app import create_app
 from service.settings import Settings
 
@@ -25,6 +25,7 @@ def main() -> None:
         fail(f"invalid settings: {settings_message(error)}")
     except SettingsError as error:  # a DPC_* value that is not JSON where JSON is expected
         fail(f"invalid settings: {error}; a group's value is JSON, e.g. DPC_AUTH__KEYS='{{...}}'")
+    memory.fix_mmap_threshold()  # before the model, the gallery and the worker threads
     startup.quiet_onnxruntime()
     try:
         prepared = startup.prepare(settings)  # here, so that a failure ends with one line

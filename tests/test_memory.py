@@ -1,4 +1,4 @@
-"""Free heap pages go back to the system after a gallery change (service.memory)."""
+"""glibc's heap hands freed memory back to the system (service.memory)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from service.memory import release_free_heap
+from service.memory import fix_mmap_threshold, release_free_heap
 
 GLIBC = hasattr(ctypes.CDLL(None), "gnu_get_libc_version")
 
@@ -45,6 +45,52 @@ def test_free_pages_between_live_blocks_go_back_to_the_system():
     assert result["before"] - result["after"] > 128  # of the 240 MiB freed, most goes back
 
 
+# 1 MiB blocks after a 16 MiB one was freed, each followed by a smaller live one, then freed:
+# glibc's own threshold (raised to 16 MiB) takes them from the heap, where the small blocks
+# pin their pages; a fixed threshold maps each one apart and unmaps it when freed.
+LARGE_BLOCKS = """
+import json, sys
+from pathlib import Path
+from service.memory import fix_mmap_threshold
+
+def rss_mib():
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+
+fixed = fix_mmap_threshold() if sys.argv[1] == "fixed" else None
+big = bytearray(16 << 20)
+del big  # a 16 MiB block, freed
+blocks, pins = [], []
+for _ in range(128):
+    blocks.append(bytearray(1 << 20))  # zero-filled: its pages are touched
+    pins.append(bytearray(100_000))  # under the threshold: from the heap, right after it
+before = rss_mib()
+del blocks
+print(json.dumps({"fixed": fixed, "freed_mib": before - rss_mib()}))
+"""
+
+
+def large_blocks(mode: str) -> dict:
+    done = subprocess.run(
+        [sys.executable, "-c", LARGE_BLOCKS, mode],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=60,
+    )
+    return json.loads(done.stdout)
+
+
+@pytest.mark.skipif(not GLIBC, reason="glibc only")
+def test_with_a_fixed_mmap_threshold_freed_large_blocks_leave_the_process():
+    assert large_blocks("glibc")["freed_mib"] < 32  # glibc's own way: the pages stay
+    fixed = large_blocks("fixed")
+    assert fixed["fixed"] is True
+    assert fixed["freed_mib"] > 96  # of 128 MiB
+
+
 def test_release_is_safe_to_call_at_any_time():
     assert release_free_heap() is GLIBC
     assert release_free_heap() is GLIBC
+    assert fix_mmap_threshold() is GLIBC  # and so is fixing the threshold again
