@@ -5,14 +5,20 @@ key (or uses ``--url`` of a running one), sends 2,048-point clouds of the seed g
 objects at random poses to ``POST /align`` at ``--rate`` requests a second for ``--duration``
 seconds (open loop: a slow answer does not slow the sender; at most ``--max-in-flight`` wait
 at once, beyond that a request is counted as dropped), and registers a new reference every
-``--write-every`` seconds, deleting every other one again. Then it checks that every
-acknowledged registration is there, byte for byte, and every acknowledged deletion is gone,
-removes what it registered, and prints: requests served, answers by status, p50/p99
-latency, the achieved rate, and the server's resident memory at the start and the end.
+``--write-every`` seconds; once ``--keep`` of them are there, the oldest is read back
+(checksum) and deleted, so the gallery churns at a steady size, as in a cell where parts
+come and go. At the end it checks that every acknowledged registration was read back byte
+for byte and every acknowledged deletion is gone, removes what it registered, and prints:
+requests served, answers by status, p50/p99 latency, the achieved rate, and the server's
+resident memory, sampled every ``--sample-every`` s: at the start, its level in the
+``--window`` seconds after ``--warmup`` seconds (allocator pools, caches and the first refits
+fill up) and in the last ``--window`` seconds (medians: one sample swings by tens of MB with
+the requests in flight), the growth between the two and the trend after the warm-up.
 
 ``--find-max`` ramps the rate instead (x1.5 a step of ``--step-duration`` seconds) until the
 service stops keeping up (errors, p99 over ``--p99-budget-ms``, or under 90 % of the rate
-achieved) and reports the highest rate it sustained.
+achieved) and reports the highest rate it sustained and its maximum throughput: the most
+alignments a second it served, which the last, saturated step shows.
 
     python scripts/load.py --rate 5 --duration 30
     python scripts/load.py --find-max --step-duration 10
@@ -186,9 +192,11 @@ class Tally:
 
 @dataclass
 class Writes:
-    kept: dict[str, str] = field(default_factory=dict)  # acknowledged registrations: name -> sha
+    kept: dict[str, str] = field(default_factory=dict)  # acknowledged, not yet deleted: sha
     deleted: set[str] = field(default_factory=set)  # acknowledged deletions
     unsure: set[str] = field(default_factory=set)  # no answer: either outcome is fine
+    checked: dict[str, str] = field(default_factory=dict)  # read back: "ok", "lost", "changed"
+    registered: int = 0  # acknowledged registrations
 
 
 async def align_once(client: httpx.AsyncClient, body: bytes, tally: Tally) -> None:
@@ -203,10 +211,25 @@ async def align_once(client: httpx.AsyncClient, body: bytes, tally: Tally) -> No
     tally.record("align", response.status_code, began)
 
 
+async def read_back(client: httpx.AsyncClient, name: str, digest: str) -> str:
+    """ "ok" if the reference is there byte for byte, else "lost" or "changed"."""
+    response = await client.get(f"/references/{name}")
+    if response.status_code != 200:
+        return "lost"
+    return "ok" if response.json().get("points_sha256") == digest else "changed"
+
+
 async def write_loop(
-    client: httpx.AsyncClient, every_s: float, until: float, writes: Writes, tally: Tally, tag: str
+    client: httpx.AsyncClient,
+    every_s: float,
+    keep: int,
+    until: float,
+    writes: Writes,
+    tally: Tally,
+    tag: str,
 ) -> None:
-    """Register one reference every ``every_s`` seconds; delete every other one again."""
+    """Register a reference every ``every_s`` seconds; once ``keep`` of them are there, read
+    the oldest back (checksum) and delete it, so the gallery churns without growing."""
     rng = np.random.default_rng(1)
     index = 0
     loop = asyncio.get_running_loop()
@@ -215,6 +238,7 @@ async def write_loop(
         await asyncio.sleep(max(0.0, start + (index + 1) * every_s - loop.time()))  # on schedule
         name = f"load-{tag}-{index}"
         points = new_reference(rng)
+        index += 1
         began = time.perf_counter()
         try:
             response = await client.post(
@@ -223,23 +247,74 @@ async def write_loop(
             tally.record("register", response.status_code, began)
             if response.status_code == 201:
                 writes.kept[name] = sha(points)
+                writes.registered += 1
         except httpx.HTTPError:
             tally.transport_errors += 1
             writes.unsure.add(name)
-        if index % 2 == 1:  # delete the one before
-            victim = f"load-{tag}-{index - 1}"
-            if victim in writes.kept:
+        while len(writes.kept) > keep:  # the oldest acknowledged one
+            victim, digest = next(iter(writes.kept.items()))
+            try:
+                writes.checked[victim] = await read_back(client, victim, digest)
                 began = time.perf_counter()
-                try:
-                    response = await client.delete(f"/references/{victim}")
-                    tally.record("delete", response.status_code, began)
-                    if response.status_code == 204:
-                        del writes.kept[victim]
-                        writes.deleted.add(victim)
-                except httpx.HTTPError:
-                    tally.transport_errors += 1
-                    writes.unsure.add(victim)
-        index += 1
+                response = await client.delete(f"/references/{victim}")
+            except httpx.HTTPError:
+                tally.transport_errors += 1
+                del writes.kept[victim]
+                writes.unsure.add(victim)
+                continue
+            tally.record("delete", response.status_code, began)
+            if response.status_code != 204:
+                break  # still there (and still kept): tried again after the next registration
+            del writes.kept[victim]
+            writes.deleted.add(victim)
+
+
+class Memory:
+    """The server's resident memory, sampled every ``every_s`` seconds while the load runs."""
+
+    def __init__(self, pid: int | None, every_s: float = 10.0):
+        self.pid, self.every_s = pid, every_s
+        self.samples: list[tuple[float, float]] = []  # (seconds into the run, MiB)
+        self._began = time.monotonic()
+
+    async def watch(self, until: float) -> None:
+        loop = asyncio.get_running_loop()
+        while self.pid is not None:
+            self.sample()
+            if loop.time() + self.every_s > until:
+                return
+            await asyncio.sleep(self.every_s)
+
+    def sample(self) -> None:
+        if (mib := rss_mib(self.pid)) is not None:
+            self.samples.append((round(time.monotonic() - self._began, 1), round(mib, 1)))
+
+    def summary(self, warmup_s: float, window_s: float) -> dict:
+        """Start, end and peak; the level after the warm-up and at the end, each the median of
+        ``window_s`` seconds of samples (one sample swings by tens of MB with the requests in
+        flight and the allocations of a refit), the growth between the two, and the trend
+        after the warm-up (least squares)."""
+        if not self.samples:
+            return {"rss_mib_start": None, "rss_mib_end": None}
+        times, mib = np.array(self.samples).T
+        settled = times >= warmup_s
+        if settled.sum() < 2:
+            settled = times >= 0
+        first = times[settled][0]
+        after_warmup = float(np.median(mib[settled & (times <= first + window_s)]))
+        last_window = float(np.median(mib[times >= times[-1] - window_s]))
+        slope = np.polyfit(times[settled], mib[settled], 1)[0] if settled.sum() > 1 else 0.0
+        return {
+            "rss_mib_start": self.samples[0][1],
+            "rss_mib_after_warmup": round(after_warmup, 1),
+            "rss_mib_last_window": round(last_window, 1),
+            "rss_mib_end": self.samples[-1][1],
+            "rss_mib_peak": float(mib.max()),
+            "rss_window_s": round(window_s, 1),
+            "rss_growth_pct": round(100 * (last_window - after_warmup) / after_warmup, 1),
+            "rss_trend_mib_per_min": round(float(slope) * 60, 2),
+            "rss_samples": self.samples,
+        }
 
 
 async def hold_rate(
@@ -270,18 +345,21 @@ async def hold_rate(
 
 
 async def verify(client: httpx.AsyncClient, writes: Writes) -> dict[str, int]:
-    """Acknowledged registrations present and identical; acknowledged deletions gone."""
-    lost = changed = resurrected = 0
+    """Every acknowledged registration read back identical (during the run, before its
+    deletion, or now); every acknowledged deletion gone."""
     for name, digest in writes.kept.items():
-        response = await client.get(f"/references/{name}")
-        if response.status_code != 200:
-            lost += 1
-        elif response.json().get("points_sha256") != digest:
-            changed += 1
+        writes.checked[name] = await read_back(client, name, digest)
+    outcomes = Counter(writes.checked.values())
+    resurrected = 0
     for name in writes.deleted:
         if (await client.get(f"/references/{name}")).status_code != 404:
             resurrected += 1
-    return {"lost": lost, "changed": changed, "resurrected": resurrected}
+    return {
+        "read_back": outcomes["ok"],
+        "lost": outcomes["lost"],
+        "changed": outcomes["changed"],
+        "resurrected": resurrected,
+    }
 
 
 async def clean_up(client: httpx.AsyncClient, writes: Writes) -> None:
@@ -324,33 +402,40 @@ async def run(args: argparse.Namespace, url: str, key: str | None, pid: int | No
         base_url=url, headers=headers, timeout=60, limits=limits
     ) as client:
         health = (await client.get("/health")).json()
-        rss_start = rss_mib(pid)
+        memory = Memory(pid, args.sample_every)
         tag = secrets.token_hex(3)
         if args.find_max:
+            memory.sample()
             steps = await find_max(client, bodies, args)
+            memory.sample()
             result: dict = {"mode": "find-max", "steps": steps}
             passed = [step["target_rate"] for step in steps if step["kept_up"]]
             result["max_sustained_rate"] = max(passed) if passed else None
+            # what the service served when the sender asked for more than it could: its maximum
+            result["max_throughput"] = max(step["achieved_rate"] for step in steps)
         else:
             tally, writes = Tally(), Writes()
             until = asyncio.get_running_loop().time() + args.duration
+            watcher = asyncio.create_task(memory.watch(until))
             writer = asyncio.create_task(
-                write_loop(client, args.write_every, until, writes, tally, tag)
+                write_loop(client, args.write_every, args.keep, until, writes, tally, tag)
             )
             elapsed = await hold_rate(
                 client, bodies, args.rate, args.duration, args.max_in_flight, tally
             )
             await writer
+            await watcher
+            memory.sample()  # the end
             result = {"mode": "rate", **summary(tally, args.rate, elapsed)}
             result["references"] = {
-                "registered": len(writes.kept) + len(writes.deleted),
+                "registered": writes.registered,
                 "deleted": len(writes.deleted),
                 **await verify(client, writes),
             }
             await clean_up(client, writes)
         result["gallery_references"] = health.get("references")
-        result["rss_mib_start"] = rss_start and round(rss_start, 1)
-        result["rss_mib_end"] = (end := rss_mib(pid)) and round(end, 1)
+        result["warmup_s"] = args.warmup
+        result |= memory.summary(args.warmup, args.window)
     return result
 
 
@@ -385,7 +470,10 @@ async def find_max(client: httpx.AsyncClient, bodies: list[bytes], args) -> list
 
 def report(result: dict) -> None:
     if result["mode"] == "find-max":
-        print(f"maximum sustained rate: {result['max_sustained_rate']} alignments/s")
+        print(
+            f"maximum sustained rate: {result['max_sustained_rate']} alignments/s; maximum "
+            f"throughput: {result['max_throughput']} alignments/s served"
+        )
     else:
         refs = result["references"]
         print(
@@ -399,10 +487,24 @@ def report(result: dict) -> None:
             f"{result['transport_errors']}, dropped {result['dropped']}"
         )
         print(
-            f"references: {refs['registered']} registered, {refs['deleted']} deleted; lost "
-            f"{refs['lost']}, changed {refs['changed']}, resurrected {refs['resurrected']}"
+            f"references: {refs['registered']} registered, {refs['deleted']} deleted, "
+            f"{refs['read_back']} read back identical; lost {refs['lost']}, changed "
+            f"{refs['changed']}, resurrected {refs['resurrected']}"
         )
-    print(f"server memory (RSS): {result['rss_mib_start']} MiB -> {result['rss_mib_end']} MiB")
+    if result["mode"] == "find-max" and result.get("rss_mib_end") is not None:
+        print(
+            f"server memory (RSS): {result['rss_mib_start']} MiB at the start, "
+            f"{result['rss_mib_end']} at the end"
+        )
+    elif result.get("rss_mib_after_warmup") is not None:
+        print(
+            f"server memory (RSS): {result['rss_mib_start']} MiB at the start, "
+            f"{result['rss_mib_after_warmup']} in the {result['rss_window_s']:g} s after "
+            f"{result['warmup_s']:g} s of warm-up, {result['rss_mib_last_window']} in the last "
+            f"{result['rss_window_s']:g} s (medians; last sample {result['rss_mib_end']}, peak "
+            f"{result['rss_mib_peak']}): {result['rss_growth_pct']:+} %, trend "
+            f"{result['rss_trend_mib_per_min']:+} MiB/min after the warm-up"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -413,6 +515,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=float, default=5.0, help="alignments a second")
     parser.add_argument("--duration", type=float, default=30.0, help="seconds")
     parser.add_argument("--write-every", type=float, default=2.0, help="seconds between writes")
+    parser.add_argument(
+        "--keep", type=int, default=4, help="the load's references kept at once (oldest deleted)"
+    )
+    parser.add_argument(
+        "--warmup", type=float, default=60.0, help="seconds before memory growth is counted"
+    )
+    parser.add_argument("--sample-every", type=float, default=2.0, help="seconds between RSS")
+    parser.add_argument(
+        "--window", type=float, default=60.0, help="seconds of RSS samples a level is the median of"
+    )
     parser.add_argument("--max-in-flight", type=int, default=32)
     parser.add_argument("--gallery", type=Path, default=Settings().model.gallery)
     parser.add_argument("--find-max", action="store_true", help="ramp the rate to saturation")
@@ -424,6 +536,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     args.rate = min(max(args.rate, 0.1), MAX_RATE)
     args.duration = min(max(args.duration, 1.0), MAX_DURATION_S)
+    args.warmup = min(max(args.warmup, 0.0), args.duration / 3)
+    args.window = min(max(args.window, args.sample_every), (args.duration - args.warmup) / 3)
+    args.keep = max(args.keep, 0)
     args.step_duration = min(max(args.step_duration, 1.0), MAX_DURATION_S / args.max_steps)
 
     if args.url:

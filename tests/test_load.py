@@ -13,7 +13,7 @@ from tests.servers import MODEL, REPO
 
 pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
 
-RATE, DURATION_S = 2, 20  # well under what 2 busy cores sustain (scripts/load.py --find-max)
+RATE, DURATION_S = 2, 30  # well under what 2 busy cores sustain (scripts/load.py --find-max)
 
 
 def test_a_short_sustained_load(tmp_path):
@@ -23,6 +23,7 @@ def test_a_short_sustained_load(tmp_path):
         f"--rate={RATE}",
         f"--duration={DURATION_S}",
         "--write-every=2",
+        "--keep=3",
         "--json",
     ]
     done = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=180)
@@ -34,6 +35,11 @@ def test_a_short_sustained_load(tmp_path):
     assert result["align_ok"] == result["align_sent"]  # gallery objects: every one recognised
     assert result["achieved_rate"] >= 0.8 * RATE
     references = result["references"]
-    assert references["registered"] >= 5 and references["deleted"] >= 2  # one every 2 s
+    # one every 2 s; beyond 3, the oldest is read back and deleted
+    assert references["registered"] >= 10 and references["deleted"] >= references["registered"] - 4
+    assert references["read_back"] == references["registered"]
     assert references["lost"] == references["changed"] == references["resurrected"] == 0
     assert result["rss_mib_start"] > 0 and result["rss_mib_end"] > 0
+    assert len(result["rss_samples"]) >= 10  # sampled every 2 s while the load ran
+    assert 0 < result["rss_mib_after_warmup"] <= result["rss_mib_peak"]
+    assert 0 < result["rss_mib_last_window"] <= result["rss_mib_peak"]
