@@ -48,7 +48,7 @@ def test_an_oracle_scores_perfectly():
 @pytest.mark.slow
 def test_quick_run_writes_the_report(tmp_path: Path):
     pytest.importorskip("cv2")
-    pytest.importorskip("open3d")
+    pytest.importorskip("open3d", exc_type=ImportError)  # its wheel needs libusb
     pytest.importorskip("pybullet_data")
     from training.evaluate import main
 
