@@ -132,11 +132,11 @@ class Engine:
     def add(self, reference: Reference) -> None:
         """Add a reference, or replace the one of its name."""
         entry = Entry.of(reference, self.settings.grid_blur)
+        share = view_gram([entry.view_features])  # its views' part of the Gram, off the lock
         with self._write_lock:
-            entries = self._snapshot.entries
-            previous = entries.get(reference.name)
-            gram = self._gram_change(entry, +1.0)
-            if previous is not None:
+            entries, gram = self._snapshot.entries, self._snapshot.gram
+            gram = share if gram is None else gram + share
+            if (previous := entries.get(reference.name)) is not None:
                 gram -= view_gram([previous.view_features])
             self._publish({**entries, reference.name: entry}, gram)
 
@@ -146,16 +146,14 @@ class Engine:
             if name not in entries:
                 raise UnknownReference(f"no reference named {name!r}")
             rest = {k: v for k, v in entries.items() if k != name}
-            self._publish(rest, self._gram_change(entries[name], -1.0) if rest else None)
-
-    def _gram_change(self, entry: Entry, sign: float) -> np.ndarray:
-        """The snapshot's Gram with one entry's views added (+1) or taken away (-1): a refit
-        then costs the same whatever the gallery's size."""
-        change = sign * view_gram([entry.view_features])
-        return change if self._snapshot.gram is None else self._snapshot.gram + change
+            gram = self._snapshot.gram - view_gram([entries[name].view_features]) if rest else None
+            self._publish(rest, gram)
 
     def _publish(self, entries: dict[str, Entry], gram: np.ndarray | None) -> None:
-        """Refit the classifier on every reference's view features and swap the snapshot."""
+        """Refit the classifier on every reference's view features and swap the snapshot.
+
+        ``gram`` is kept by sums across changes (one reference's share added or taken away),
+        so a refit costs the same whatever the gallery's size."""
         classifier = None
         if entries:
             classifier = LinearClassifier.fit(

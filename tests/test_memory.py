@@ -13,18 +13,23 @@ from service.memory import fix_mmap_threshold, release_free_heap
 
 GLIBC = hasattr(ctypes.CDLL(None), "gnu_get_libc_version")
 
-# In a child, so that its heap is nobody else's: 256 MiB in 64 KiB blocks (below glibc's mmap
-# threshold: they come from the heap), every 16th kept alive so no free stretch reaches the
-# top of the heap, the rest freed. Resident memory before and after the release.
-FRAGMENT = """
-import json
+CHILD = """
+import json, sys
 from pathlib import Path
-from service.memory import release_free_heap
 
 def rss_mib():
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
+"""
+
+# In a child, so that its heap is nobody else's: 256 MiB in 64 KiB blocks (below glibc's mmap
+# threshold: they come from the heap), every 16th kept alive so no free stretch reaches the
+# top of the heap, the rest freed. Resident memory before and after the release.
+FRAGMENT = (
+    CHILD
+    + """
+from service.memory import release_free_heap
 
 blocks = [bytearray(b"x" * 65536) for _ in range(4096)]
 kept = blocks[::16]
@@ -33,6 +38,7 @@ before = rss_mib()
 released = release_free_heap()
 print(json.dumps({"released": released, "before": before, "after": rss_mib()}))
 """
+)
 
 
 @pytest.mark.skipif(not GLIBC, reason="glibc only")
@@ -48,15 +54,10 @@ def test_free_pages_between_live_blocks_go_back_to_the_system():
 # 1 MiB blocks after a 16 MiB one was freed, each followed by a smaller live one, then freed:
 # glibc's own threshold (raised to 16 MiB) takes them from the heap, where the small blocks
 # pin their pages; a fixed threshold maps each one apart and unmaps it when freed.
-LARGE_BLOCKS = """
-import json, sys
-from pathlib import Path
+LARGE_BLOCKS = (
+    CHILD
+    + """
 from service.memory import fix_mmap_threshold
-
-def rss_mib():
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
 
 fixed = fix_mmap_threshold() if sys.argv[1] == "fixed" else None
 big = bytearray(16 << 20)
@@ -69,6 +70,7 @@ before = rss_mib()
 del blocks
 print(json.dumps({"fixed": fixed, "freed_mib": before - rss_mib()}))
 """
+)
 
 
 def large_blocks(mode: str) -> dict:
