@@ -4,7 +4,7 @@
 
 For each gallery size the service runs as a real process (``python -m service``) on a free
 loopback port with a data directory of its own, seeded before it starts straight through
-``service.store.GalleryStore`` (the first 40 references of the shipped gallery; past the
+``service.gallery.store.GalleryStore`` (the first 40 references of the shipped gallery; past the
 shipped ones, padding references: the procedurally generated objects of pybullet_data that the
 object manifest does not use, sampled as a registration samples them, computed once per model
 and cached). Against it:
@@ -16,7 +16,7 @@ and cached). Against it:
 - removing and registering one reference (each refits the classifier on the whole gallery);
 - ``Engine.align`` in this process on the same clouds, so the HTTP overhead is visible.
 
-The clouds are 2,048-point ``so3`` cases (``training.cases.make_cases``) of the first 40 seen
+The clouds are 2,048-point ``so3`` cases (``evaluation.cases.make_cases``) of the first 40 seen
 objects. Every count is fixed and the run stops by itself; nothing leaves loopback. Also the
 classifier refit for 100 references (after one change, and from scratch) and, with
 ``--accuracy``, the share of paper-poses, so3 and sparse cases that succeed (right label and
@@ -35,9 +35,6 @@ import json
 import os
 import platform
 import shutil
-import socket
-import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -51,16 +48,16 @@ import httpx
 import numpy as np
 import orjson
 
-from service.catalog import SEEDED_KEY
-from service.classifier import LinearClassifier, classifier_input, view_gram
-from service.engine import Engine
-from service.gallery import Reference, load_gallery, save_gallery
-from service.mapping import Mapper
-from service.sampling import MeshError, load_mesh, sample_surface
+from evaluation.cases import Case, make_cases
+from evaluation.metrics import SUCCESS_ADD_S, add_s, diameter
+from evaluation.served import ServiceProcess, seed_store
+from service.engine.classifier import LinearClassifier, classifier_input, view_gram
+from service.engine.engine import Engine
+from service.engine.mapping import Mapper
+from service.engine.reference import Reference
+from service.engine.sampling import MeshError, load_mesh, sample_surface
+from service.gallery.gallery_file import load_gallery, save_gallery
 from service.settings import EngineSettings, Settings
-from service.store import GalleryStore
-from training.cases import Case, make_cases
-from training.metrics import SUCCESS_ADD_S, add_s, diameter
 from training.objects import data_root, load_manifest, load_object_meshes
 
 REPO = Path(__file__).resolve().parent.parent
@@ -73,92 +70,6 @@ STEPS = ("normalize", "map", "classify", "hypothesise", "verify", "refine", "mea
 ACCURACY_FAMILIES = ("paper-poses", "so3", "sparse")
 JSON_TYPE = {"content-type": "application/json"}
 RAW_TYPE = {"content-type": "application/octet-stream"}
-
-
-# --- the service as a process ---------------------------------------------------------------
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-class ServiceProcess:
-    """``python -m service`` on a free loopback port; ready once ``/v2/health/ready`` is 200."""
-
-    def __init__(self, data_dir: Path, model: Path, gallery: Path, ready_timeout: float):
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.log_path = data_dir / "service.log"
-        env = {  # an open service: API keys would only add a header check per request
-            **{k: v for k, v in os.environ.items() if not k.startswith("DPC_AUTH__")},
-            "DPC_SERVER__HOST": "127.0.0.1",
-            "DPC_SERVER__PORT": str(self.port),
-            "DPC_SERVER__LOG_LEVEL": "warning",
-            "DPC_GALLERY__DATA_DIR": str(data_dir),
-            "DPC_MODEL__PATH": str(model),
-            "DPC_MODEL__GALLERY": str(gallery),
-        }
-        began = time.perf_counter()
-        with open(self.log_path, "wb") as log:
-            self.process = subprocess.Popen(
-                [sys.executable, "-m", "service"],
-                cwd=REPO,
-                env=env,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-            )
-        try:
-            self._wait_ready(ready_timeout)
-        except BaseException:
-            self.stop()
-            raise
-        self.ready_s = time.perf_counter() - began
-
-    def _wait_ready(self, timeout: float) -> None:
-        deadline = time.monotonic() + timeout
-        with httpx.Client(base_url=self.url, timeout=5.0) as client:
-            while True:
-                if self.process.poll() is not None:
-                    raise RuntimeError(
-                        f"the service exited ({self.process.returncode}):\n{self.log()}"
-                    )
-                try:
-                    answer = client.get("/v2/health/ready")
-                    if answer.status_code == 200:
-                        return
-                    detail = answer.json().get("detail") or ""
-                    if "failed" in detail or "damaged" in detail:
-                        raise RuntimeError(f"the gallery did not load: {detail}\n{self.log()}")
-                except httpx.TransportError:
-                    pass
-                if time.monotonic() > deadline:
-                    raise TimeoutError(
-                        f"the service was not ready in {timeout:.0f} s\n{self.log()}"
-                    )
-                time.sleep(0.1)
-
-    def log(self, lines: int = 30) -> str:
-        try:
-            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
-        except OSError:
-            return ""
-
-    def stop(self) -> None:
-        if self.process.poll() is None:
-            self.process.terminate()
-            try:
-                self.process.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait(timeout=10)
-
-    def __enter__(self) -> ServiceProcess:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
 
 
 # --- figures ---------------------------------------------------------------------------------
@@ -263,11 +174,19 @@ def padding_references(
     return references, seconds
 
 
-def seed_store(data_dir: Path, references: list[Reference], model_hash: str) -> None:
-    """Write the references into a fresh store, marked seeded so the service adds nothing."""
-    data_dir.mkdir(parents=True, exist_ok=True)
-    store = GalleryStore.in_dir(data_dir)
-    store.put_many(references, model_hash, meta={SEEDED_KEY: "benchmarks.align_http"})
+def serve(data_dir: Path, args: argparse.Namespace) -> ServiceProcess:
+    """The service on the benchmark's model, open (API keys would only add a header check per
+    request); other ``DPC_*`` variables of this environment (engine settings) reach it."""
+    return ServiceProcess(
+        data_dir / "service.log",
+        args.ready_timeout,
+        inherit=True,
+        gallery__data_dir=str(data_dir),
+        model__path=str(args.model),
+        model__gallery=str(args.gallery),
+        server__log_level="warning",
+        auth__keys="{}",
+    )
 
 
 # --- measurements ----------------------------------------------------------------------------
@@ -418,7 +337,7 @@ def measure_size(
     seed_store(data_dir, references, model_hash)
     print(f"[{size} references] starting the service ...", flush=True)
     result: dict = {"references": size, "padding_references": len(references) - len(shipped)}
-    with ServiceProcess(data_dir, args.model, args.gallery, args.ready_timeout) as service:
+    with serve(data_dir, args) as service:
         result["service_ready_s"] = service.ready_s
         with httpx.Client(base_url=service.url, timeout=300.0) as client:
             health = client.get("/health").json()
@@ -504,7 +423,7 @@ def accuracy(
     print(f"[accuracy] starting the service with {len(gallery_refs)} references", flush=True)
     result: dict = {"poses_per_object": args.accuracy_poses, "seed": args.seed}
     with (
-        ServiceProcess(data_dir, args.model, args.gallery, args.ready_timeout) as service,
+        serve(data_dir, args) as service,
         httpx.Client(base_url=service.url, timeout=300.0) as client,
     ):
         register_ms = []

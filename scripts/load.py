@@ -33,9 +33,6 @@ import hashlib
 import json
 import os
 import secrets
-import signal
-import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -49,7 +46,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from service.gallery import load_gallery  # noqa: E402 - numpy only, no server code
+from evaluation.served import ServiceProcess  # noqa: E402
+from service.gallery.gallery_file import load_gallery  # noqa: E402 - numpy only, no server code
 from service.settings import Settings  # noqa: E402
 
 CLOUD_POINTS = 2048
@@ -60,59 +58,17 @@ MAX_RATE = 500.0
 # --- the server under load ----------------------------------------------------------------
 
 
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-class OwnServer:
+def own_server(workdir: Path) -> tuple[ServiceProcess, str]:
     """``python -m service`` on loopback with a fresh data directory and an admin key."""
-
-    def __init__(self, workdir: Path):
-        self.key = secrets.token_urlsafe(24)
-        port = free_port()
-        self.url = f"http://127.0.0.1:{port}"
-        env = {k: v for k, v in os.environ.items() if not k.startswith("DPC_")}
-        model = Settings().model  # the model the caller's environment names
-        env |= {
-            "DPC_MODEL__PATH": str(model.path),
-            "DPC_MODEL__GALLERY": str(model.gallery),
-            "DPC_GALLERY__DATA_DIR": str(workdir / "data"),
-            "DPC_SERVER__HOST": "127.0.0.1",
-            "DPC_SERVER__PORT": str(port),
-            "DPC_SERVER__LOG_LEVEL": "warning",
-            "DPC_AUTH__KEYS": json.dumps({self.key: "admin"}),
-        }
-        self.log = open(workdir / "service.log", "wb")
-        self.process = subprocess.Popen(
-            [sys.executable, "-m", "service"], cwd=REPO, env=env, stdout=self.log, stderr=self.log
-        )
-        self.pid = self.process.pid
-
-    def wait_ready(self, timeout_s: float = 120) -> None:
-        deadline = time.monotonic() + timeout_s
-        with httpx.Client(base_url=self.url, timeout=5) as client:
-            while time.monotonic() < deadline:
-                if self.process.poll() is not None:
-                    raise SystemExit(f"the service exited with status {self.process.returncode}")
-                try:
-                    if client.get("/v2/health/ready").status_code == 200:
-                        return
-                except httpx.TransportError:
-                    pass
-                time.sleep(0.1)
-        raise SystemExit(f"the service was not ready in {timeout_s} s")
-
-    def stop(self) -> None:
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGTERM)
-            try:
-                self.process.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
-        self.log.close()
+    key = secrets.token_urlsafe(24)
+    server = ServiceProcess(
+        workdir / "service.log",
+        wait=False,
+        gallery__data_dir=str(workdir / "data"),
+        server__log_level="warning",
+        auth__keys=json.dumps({key: "admin"}),
+    )
+    return server, key
 
 
 def rss_mib(pid: int | None) -> float | None:
@@ -548,10 +504,10 @@ def main(argv: list[str] | None = None) -> int:
         result = asyncio.run(run(args, args.url, args.key, args.pid))
     else:
         with tempfile.TemporaryDirectory(prefix="dpc-load-") as workdir:
-            server = OwnServer(Path(workdir))
+            server, key = own_server(Path(workdir))
             try:
                 server.wait_ready()
-                result = asyncio.run(run(args, server.url, server.key, server.pid))
+                result = asyncio.run(run(args, server.url, key, server.pid))
             finally:
                 server.stop()
     report(result)

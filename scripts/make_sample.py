@@ -30,7 +30,7 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(REPO))
 
-from service.sampling import sample_surface  # noqa: E402
+from service.engine.sampling import sample_surface  # noqa: E402
 from training.objects import data_root, load_manifest, load_object_meshes  # noqa: E402
 
 POINTS = 2048

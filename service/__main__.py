@@ -1,6 +1,6 @@
 """``python -m service``: check, then serve the app with uvicorn on the settings' host and port.
 
-Bad settings or a failed startup check (``service.startup``) end the process with one line on
+Bad settings or a failed startup check (``service.api.startup``) end the process with one line on
 stderr and exit status 2, before anything listens; no traceback.
 """
 
@@ -13,8 +13,9 @@ import uvicorn
 from pydantic import ValidationError
 from pydantic_settings import SettingsError
 
-from service import logs, memory, startup
-from service.app import create_app
+from service import memory
+from service.api import logs, startup
+from service.api.app import create_app
 from service.settings import Settings
 
 

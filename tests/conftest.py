@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.sampling import load_mesh, sample_surface
+from service.engine.sampling import load_mesh, sample_surface
 
 REPO = Path(__file__).resolve().parent.parent
 

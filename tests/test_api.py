@@ -23,11 +23,11 @@ import pytest
 import trimesh
 import uvicorn
 
-from service.app import create_app
-from service.gallery import Reference
-from service.mapping import file_sha256
+from service.api.app import create_app
+from service.engine.mapping import file_sha256
+from service.engine.reference import Reference
+from service.gallery.store import GalleryStore
 from service.settings import EngineSettings, GallerySettings, LimitSettings, Settings
-from service.store import GalleryStore
 
 SHIPPED = Settings()
 pytestmark = pytest.mark.skipif(
@@ -52,9 +52,8 @@ class Server:
         with socket.socket() as probe:
             probe.bind(("127.0.0.1", 0))
             port = probe.getsockname()[1]
-        config = uvicorn.Config(
-            create_app(self.settings), host="127.0.0.1", port=port, log_level="warning"
-        )
+        self.app = create_app(self.settings)
+        config = uvicorn.Config(self.app, host="127.0.0.1", port=port, log_level="warning")
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, daemon=True)
         self.thread.start()
@@ -361,20 +360,36 @@ def test_a_body_over_the_limit_is_413(api):
     assert upload.status_code == 413
 
 
-def test_health_answers_while_align_is_busy(api):
-    scene = moved(box_points(MAX_POINTS, seed=4))[0].tolist()
-    body = orjson.dumps({"points": scene})
+def test_health_answers_while_every_alignment_slot_is_taken(server, monkeypatch):
+    """Alignments run off the event loop: with every slot held by a running alignment, the
+    health routes still answer at once, and the alignments answer once they may finish."""
+    engine = server.app.state.catalog.engine
+    slots = server.settings.align_slots
+    original, gate, entered = engine.align, threading.Event(), threading.Semaphore(0)
+
+    def held_align(*args, **kwargs):  # the real alignment, started only when the gate opens
+        entered.release()
+        assert gate.wait(timeout=60), "the test never opened the gate"
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(engine, "align", held_align)
+    body = orjson.dumps({"points": moved(box_points(600, seed=4))[0].tolist()})
     headers = {"content-type": "application/json"}
-    began = time.perf_counter()
-    with ThreadPoolExecutor(6) as pool:
-        aligns = [pool.submit(api.post, "/align", content=body, headers=headers) for _ in range(6)]
-        time.sleep(0.05)
-        asked = time.perf_counter()
-        assert api.get("/health").status_code == 200
-        health_s = time.perf_counter() - asked
-        assert all(f.result().status_code == 200 for f in aligns)
-    aligns_s = time.perf_counter() - began
-    assert health_s < aligns_s / 3, (health_s, aligns_s)
+    try:
+        with ThreadPoolExecutor(slots) as pool:
+            aligns = [
+                pool.submit(server.client.post, "/align", content=body, headers=headers)
+                for _ in range(slots)
+            ]
+            for _ in range(slots):  # every slot is now held by an alignment in a worker thread
+                assert entered.acquire(timeout=60), "an alignment never started"
+            assert server.client.get("/health").status_code == 200
+            assert server.client.get("/v2/health/ready").json() == {"ready": True, "detail": None}
+            assert not any(future.done() for future in aligns)
+            gate.set()
+            assert all(future.result().status_code == 200 for future in aligns)
+    finally:
+        gate.set()
 
 
 # --- the rest -------------------------------------------------------------------------

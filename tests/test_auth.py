@@ -7,7 +7,7 @@ import logging
 import numpy as np
 import pytest
 
-from service import auth
+from service.api import auth
 from service.settings import AuthSettings, GallerySettings, Settings
 from tests.servers import MODEL, ThreadServer
 

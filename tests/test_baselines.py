@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.sampling import load_mesh, sample_surface
-from training.cases import make_cases, object_scale
-from training.metrics import add_s, diameter
+from evaluation.cases import make_cases, object_scale
+from evaluation.metrics import add_s, diameter
+from service.engine.sampling import load_mesh, sample_surface
 
 OBJECTS = {
     "duck": "duck.obj",
@@ -44,7 +44,7 @@ def check(recognizer, references, cases):
 @pytest.mark.slow
 def test_ppf_recognises_and_poses(gallery):
     pytest.importorskip("cv2")
-    from training.baselines.ppf import PPFRecognizer
+    from evaluation.baselines.ppf import PPFRecognizer
 
     references, cases = gallery
     check(PPFRecognizer(references), references, cases)
@@ -53,7 +53,7 @@ def test_ppf_recognises_and_poses(gallery):
 @pytest.mark.slow
 def test_fpfh_recognises_and_poses(gallery):
     pytest.importorskip("open3d", exc_type=ImportError)  # its wheel needs libusb
-    from training.baselines.fpfh import FPFHRecognizer
+    from evaluation.baselines.fpfh import FPFHRecognizer
 
     references, cases = gallery
     check(FPFHRecognizer(references), references, cases)

@@ -11,8 +11,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from service.sampling import load_mesh, sample_surface
-from training.cases import (
+from evaluation.cases import (
     CAMERA_DISTANCE_SCALES,
     KEEP_SHARES,
     NOISE_SCALE_SHARE,
@@ -23,7 +22,8 @@ from training.cases import (
     rotation_from_angles,
     uniform_rotations,
 )
-from training.metrics import geodesic_deg
+from evaluation.metrics import geodesic_deg
+from service.engine.sampling import load_mesh, sample_surface
 
 
 def pybullet_mesh(relative: str) -> trimesh.Trimesh:

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.classifier import LinearClassifier, classifier_input, view_gram
-from service.engine import Engine
-from service.gallery import Reference
-from service.grid import GRID_SIZE
-from service.mapping import Mapper
+from service.engine.classifier import LinearClassifier, classifier_input, view_gram
+from service.engine.engine import Engine
+from service.engine.grid import GRID_SIZE
+from service.engine.mapping import Mapper
+from service.engine.reference import Reference
 from service.settings import EngineSettings
 from tests.servers import MODEL
 

@@ -19,11 +19,11 @@ import httpx
 import numpy as np
 import pytest
 
-from service.catalog import Catalog
-from service.engine import Engine
-from service.mapping import Mapper
+from service.engine.engine import Engine
+from service.engine.mapping import Mapper
+from service.gallery.catalog import Catalog
+from service.gallery.store import GalleryStore
 from service.settings import EngineSettings
-from service.store import GalleryStore
 from tests.servers import MODEL, ProcessServer
 
 pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.sampling import sample_surface
-from training.cases import make_cases, object_scale
-from training.evaluate import Truth, case_record
-from training.metrics import diameter, summarize
-from training.report import PLOTS
+from evaluation.cases import make_cases, object_scale
+from evaluation.evaluate import Truth, case_record
+from evaluation.metrics import diameter, summarize
+from evaluation.report import PLOTS
+from service.engine.sampling import sample_surface
 
 from .conftest import pybullet_mesh
 
@@ -50,7 +50,7 @@ def test_quick_run_writes_the_report(tmp_path: Path):
     pytest.importorskip("cv2")
     pytest.importorskip("open3d", exc_type=ImportError)  # its wheel needs libusb
     pytest.importorskip("pybullet_data")
-    from training.evaluate import main
+    from evaluation.evaluate import main
 
     main(["--quick", "--out", str(tmp_path)])
     readme = (tmp_path / "README.md").read_text()

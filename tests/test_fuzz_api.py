@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, settings
 
-from service.app import create_app
+from service.api.app import create_app
 from service.settings import AuthSettings, GallerySettings, LimitSettings, Settings
 from tests.servers import MODEL, ThreadServer
 

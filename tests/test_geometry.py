@@ -7,13 +7,13 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from service.alignment import alignment_error
-from service.classifier import LinearClassifier, classifier_input
-from service.grid import GRID_SIZE, grid
-from service.icp import icp
-from service.normalize import normalize, radius
-from service.principal_axes import principal_axes_hypotheses, principal_frame
-from service.registration import kabsch, paper_least_squares, ransac
+from service.engine.alignment import alignment_error
+from service.engine.classifier import LinearClassifier, classifier_input
+from service.engine.grid import GRID_SIZE, grid
+from service.engine.icp import icp
+from service.engine.normalize import normalize, radius
+from service.engine.principal_axes import principal_axes_hypotheses, principal_frame
+from service.engine.registration import kabsch, paper_least_squares, ransac
 
 
 def random_pose(seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -10,7 +10,7 @@ import re
 import numpy as np
 import pytest
 
-from service.logs import JsonFormatter, RequestIdFilter, request_id
+from service.api.logs import JsonFormatter, RequestIdFilter, request_id
 from tests.servers import MODEL, ProcessServer
 
 pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")

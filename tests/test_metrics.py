@@ -7,8 +7,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from service.sampling import sample_surface
-from training.metrics import (
+from evaluation.metrics import (
     PRECISE_ADD_S,
     add_s,
     alignment_error_normalized,
@@ -17,6 +16,7 @@ from training.metrics import (
     geodesic_deg,
     summarize,
 )
+from service.engine.sampling import sample_surface
 
 
 def rotation_z(degrees: float) -> np.ndarray:

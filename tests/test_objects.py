@@ -12,7 +12,7 @@ import trimesh
 
 pytest.importorskip("pybullet_data")
 
-from service.sampling import sample_surface  # noqa: E402
+from service.engine.sampling import sample_surface  # noqa: E402
 from training.objects import (  # noqa: E402
     ObjectSpec,
     default_manifest_path,

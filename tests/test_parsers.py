@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
+from service.api.parsers import file_kind, read_points
 from service.errors import InvalidPoints
-from service.parsers import file_kind, read_points
 
 COUNT = 256  # points a mesh is sampled to
 

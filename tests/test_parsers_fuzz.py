@@ -13,10 +13,10 @@ from fastapi.exceptions import RequestValidationError
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from service.api.parsers import read_points
+from service.api.routes.common import json_object
+from service.api.validation import points_from_raw, validate_points
 from service.errors import InvalidPoints
-from service.parsers import read_points
-from service.routes.common import json_object
-from service.validation import points_from_raw, validate_points
 
 FUZZ = settings(
     max_examples=150,

@@ -11,11 +11,11 @@ import sqlite3
 
 import pytest
 
-from service.app import create_app
-from service.mapping import file_sha256
+from service.api.app import create_app
+from service.api.startup import StartupError, prepare
+from service.engine.mapping import file_sha256
+from service.gallery.store import FILENAME, SCHEMA_VERSION, GalleryStore, StoreIncompatible
 from service.settings import GallerySettings, ModelSettings, Settings
-from service.startup import StartupError, prepare
-from service.store import FILENAME, SCHEMA_VERSION, GalleryStore, StoreIncompatible
 from tests.servers import MODEL, run_service
 
 pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")

@@ -5,9 +5,9 @@ import sqlite3
 import numpy as np
 import pytest
 
+from service.engine.reference import Reference
 from service.errors import ReferenceExists, UnknownReference
-from service.gallery import Reference
-from service.store import GalleryStore, StoreCorrupted
+from service.gallery.store import GalleryStore, StoreCorrupted
 
 MODEL = "a" * 64
 

@@ -11,7 +11,7 @@ import trimesh
 
 torch = pytest.importorskip("torch")
 
-from service.mapping import Mapper  # noqa: E402
+from service.engine.mapping import Mapper  # noqa: E402
 from training.export import check_parity, export_onnx, load_checkpoint  # noqa: E402
 from training.train import main as train_main  # noqa: E402
 

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
+from service.api.validation import points_from_raw, validate_points
 from service.errors import InvalidPoints
-from service.validation import points_from_raw, validate_points
 
 LIMITS = {"min_points": 4, "max_points": 100}
 

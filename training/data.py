@@ -13,8 +13,8 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from service.normalize import normalize
-from service.sampling import sample_surface
+from service.engine.normalize import normalize
+from service.engine.sampling import sample_surface
 
 PAPER_STEP = np.pi / 24  # the paper's training angles: 0 to pi/2 in pi/24 steps about x, y, z
 

@@ -24,10 +24,10 @@ import onnx
 import onnxruntime as ort
 import torch
 
-from service.engine import Engine
-from service.gallery import save_gallery
-from service.mapping import INPUT_NAME, OUTPUT_NAME, Mapper, file_sha256
-from service.sampling import sample_surface
+from service.engine.engine import Engine
+from service.engine.mapping import INPUT_NAME, OUTPUT_NAME, Mapper, file_sha256
+from service.engine.sampling import sample_surface
+from service.gallery.gallery_file import save_gallery
 from service.settings import EngineSettings, GallerySettings
 from training.model import DPCMN
 from training.objects import load_manifest, load_object_meshes

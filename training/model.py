@@ -16,7 +16,7 @@ Choices the paper leaves open, and why:
   ReLU, but a ReLU there would zero half the matrix and confine every output to
   one quadrant; the matrix is a projection and needs both signs.
 - No normalisation layers: the figure shows none, and the input is already centred
-  and scaled (``service.normalize``), so the network needs no running statistics
+  and scaled (``service.engine.normalize``), so the network needs no running statistics
   and the ONNX graph is the same in training and serving.
 - The input is the cloud centred on its centroid and divided by its radius, and
   (``canonical=True`` in the config, the shipped default) rotated into its

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import trimesh
 
-from service.sampling import MeshError, load_mesh
+from service.engine.sampling import MeshError, load_mesh
 
 SPLITS = ("seen", "unseen")
 FOLDER_SUFFIXES = (".obj", ".stl", ".ply")
@@ -149,9 +149,9 @@ def objects_from_folder(folder: Path, split: str = "seen") -> list[ObjectSpec]:
 
 
 def load_object_meshes(specs: Iterable[ObjectSpec]) -> dict[str, trimesh.Trimesh]:
-    """Each object's mesh by name, read with :func:`service.sampling.load_mesh`.
+    """Each object's mesh by name, read with :func:`service.engine.sampling.load_mesh`.
 
-    A file that holds no usable mesh raises ``service.sampling.MeshError`` (a ``ValueError``)
+    A file that holds no usable mesh raises ``service.engine.sampling.MeshError`` (a ``ValueError``)
     naming the object.
     """
     meshes: dict[str, trimesh.Trimesh] = {}

@@ -38,7 +38,7 @@ import numpy as np
 import pybullet_data
 from scipy.spatial import cKDTree
 
-from service.sampling import MeshError, load_mesh, sample_surface
+from service.engine.sampling import MeshError, load_mesh, sample_surface
 
 MESH_SUFFIXES = (".obj", ".stl", ".ply")
 MIN_FACES = 50

@@ -1,0 +1,6 @@
+"""``python -m evaluation``: the evaluation of shared/EVALUATION.md (``evaluation.evaluate``)."""
+
+from evaluation.evaluate import main
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,163 @@
+"""``python -m service`` as a child process on a free loopback port: the one way the evaluation,
+the benchmarks, the load script and the tests start a real server, wait for it and stop it.
+
+Settings go in as keyword arguments named like the environment variables without their prefix
+(``gallery__data_dir="..."`` is ``DPC_GALLERY__DATA_DIR``). The model and seed gallery default
+to the ones the caller's environment names, so ``DPC_MODEL__PATH`` reaches the server.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+from service.engine.reference import Reference
+from service.gallery.catalog import SEEDED_KEY
+from service.gallery.store import GalleryStore
+from service.settings import Settings
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def service_env(port: int, inherit: bool = False, **settings: str) -> dict[str, str]:
+    """The server's environment: this process's, with its other ``DPC_`` settings kept only if
+    ``inherit``; then the model this environment names, the loopback port and ``settings``."""
+    model = Settings().model
+    env = {k: v for k, v in os.environ.items() if inherit or not k.startswith("DPC_")}
+    env |= {
+        "DPC_MODEL__PATH": str(model.path),
+        "DPC_MODEL__GALLERY": str(model.gallery),
+        "DPC_SERVER__HOST": "127.0.0.1",
+        "DPC_SERVER__PORT": str(port),
+        "PYTHONUNBUFFERED": "1",
+    }
+    return env | {f"DPC_{key.upper()}": str(value) for key, value in settings.items()}
+
+
+class ServiceProcess:
+    """``python -m service`` with its log in ``log_path``; ready once ``/v2/health/ready`` is 200.
+
+    ``wait=False`` returns at once (call ``wait_ready``); a context manager stops it on exit.
+    """
+
+    def __init__(
+        self,
+        log_path: Path,
+        ready_timeout: float = 120.0,
+        inherit: bool = False,
+        wait: bool = True,
+        **settings: str,
+    ):
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log_path = Path(log_path)
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        self.began = time.perf_counter()
+        with open(self.log_path, "ab") as log:
+            self.process = subprocess.Popen(
+                [sys.executable, "-m", "service"],
+                cwd=REPO,
+                env=service_env(self.port, inherit, **settings),
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
+        self.ready_s: float | None = None
+        if wait:
+            try:
+                self.wait_ready(ready_timeout)
+            except BaseException:
+                self.kill()
+                raise
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def wait_ready(self, timeout: float = 120.0) -> None:
+        """Until ``/v2/health/ready`` answers 200; raises with the log's tail if the server
+        exits, its gallery fails to load, or ``timeout`` seconds pass."""
+        deadline = time.monotonic() + timeout
+        with httpx.Client(base_url=self.url, timeout=5.0) as client:
+            while True:
+                if not self.alive():
+                    raise RuntimeError(
+                        f"the service exited ({self.process.returncode}):\n{self.log()}"
+                    )
+                try:
+                    answer = client.get("/v2/health/ready")
+                    if answer.status_code == 200:
+                        self.ready_s = time.perf_counter() - self.began
+                        return
+                    detail = answer.json().get("detail") or ""
+                    if "failed" in detail or "damaged" in detail:
+                        raise RuntimeError(f"the gallery did not load: {detail}\n{self.log()}")
+                except httpx.TransportError:
+                    pass
+                if time.monotonic() > deadline:
+                    raise TimeoutError(
+                        f"the service was not ready in {timeout:.0f} s\n{self.log()}"
+                    )
+                time.sleep(0.05)
+
+    def log(self, lines: int = 30) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return ""
+
+    def stop(self) -> None:
+        """SIGTERM, then SIGKILL if it has not ended in 15 s."""
+        if self.alive():
+            self.process.send_signal(signal.SIGTERM)
+            try:
+                self.process.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+        self.process.wait(timeout=10)
+
+    def kill(self) -> None:
+        """SIGKILL: as a power cut looks to the process."""
+        if self.alive():
+            self.process.send_signal(signal.SIGKILL)
+        self.process.wait(timeout=10)
+
+    def __enter__(self) -> ServiceProcess:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def run_service(timeout_s: float = 60, **settings: str) -> subprocess.CompletedProcess:
+    """``python -m service`` expected to stop at its start-up checks: the completed process."""
+    return subprocess.run(
+        [sys.executable, "-m", "service"],
+        cwd=REPO,
+        env=service_env(free_port(), **settings),
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+    )
+
+
+def seed_store(data_dir: Path, references: list[Reference], model_hash: str) -> None:
+    """Write the references into a fresh store, marked seeded so the service adds nothing."""
+    data_dir.mkdir(parents=True, exist_ok=True)
+    store = GalleryStore.in_dir(data_dir)
+    store.put_many(references, model_hash, meta={SEEDED_KEY: "evaluation.served"})

@@ -1,0 +1,311 @@
+"""The FastAPI application: lifespan, error mapping, body limit, metrics, logs, the routers.
+
+``create_app(settings)`` builds it; the lifespan runs the startup checks (``service.api.startup``:
+the model, its manifest, the data directory, the store's schema), then loads the gallery in a
+background thread, so ``/v2/health/live`` answers at once and ``/v2/health/ready`` turns 200
+when the gallery is in.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import AsyncIterator, Awaitable, Callable
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
+from fastapi.responses import JSONResponse
+from prometheus_client import CollectorRegistry, Gauge
+from prometheus_fastapi_instrumentator import Instrumentator
+from starlette.exceptions import HTTPException
+from starlette.routing import Match
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.api import auth, logs, startup
+from service.api.dependencies import Loading, NotReady
+from service.api.limiter import Busy, Limiter, TimedOut
+from service.api.routes import align, health, references
+from service.api.routes.common import UnsupportedMediaType
+from service.api.schemas import AlignRequest, ReferenceRequest
+from service.engine.engine import Engine
+from service.engine.mapping import Mapper
+from service.errors import EmptyGallery, InvalidPoints, ReferenceExists, UnknownReference
+from service.gallery.catalog import Catalog, GalleryFull
+from service.gallery.store import GalleryStore, StoreCorrupted
+from service.settings import Settings
+
+log = logging.getLogger("service")
+
+VERSION = "0.1.0"
+STATUS = {  # the one status code of each error the engine, store and routes raise
+    InvalidPoints: 422,
+    UnknownReference: 404,
+    EmptyGallery: 409,
+    ReferenceExists: 409,
+    GalleryFull: 409,
+    UnsupportedMediaType: 415,
+    NotReady: 503,
+    Busy: 503,  # with Retry-After
+    TimedOut: 504,
+}
+ERROR_REF = "#/components/schemas/Error"
+
+
+class BodyTooLarge(Exception):
+    """A request body over ``limits.max_body_bytes`` (413)."""
+
+
+def create_app(
+    settings: Settings | None = None, prepared: tuple[Mapper, GalleryStore] | None = None
+) -> FastAPI:
+    """The app; ``prepared`` is ``startup.prepare``'s result when the caller already ran it."""
+    settings = settings or Settings()
+    app = FastAPI(
+        title="DPC-MN pose service",
+        version=VERSION,
+        description="Recognise a registered object in a point cloud and estimate its 6-DoF pose.",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.prepared = prepared
+    for router in (align.router, references.router, health.router):
+        app.include_router(router)
+    _add_error_handlers(app)
+    app.add_middleware(BodyLimit, max_bytes=settings.limits.max_body_bytes)
+    _add_metrics(app)  # counts every answer, the 413s included
+    app.add_middleware(logs.RequestLog)  # outermost: every answer has a request id
+    app.openapi = lambda: _openapi(app)
+    return app
+
+
+@asynccontextmanager
+async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+    settings: Settings = app.state.settings
+    mapper, store = app.state.prepared or startup.prepare(settings)
+    log.info(
+        "model %s (sha256 %s), execution providers %s",
+        mapper.path,
+        mapper.model_hash,
+        ", ".join(mapper.providers),
+    )
+    _log_auth(settings)
+    catalog = Catalog(Engine(mapper, settings.engine), store, settings.gallery.max_references)
+    app.state.catalog = catalog
+    limits = settings.limits
+    app.state.limiter = limiter = Limiter(
+        settings.align_slots, limits.queue_timeout_s, limits.request_timeout_s
+    )
+    app.state.loading = loading = Loading()
+    app.state.metrics_references.set_function(lambda: len(catalog.engine))
+    loader = threading.Thread(
+        target=_load, args=(catalog, settings, loading), name="gallery-load", daemon=True
+    )
+    loader.start()
+    yield
+    limiter.close()
+    loader.join(timeout=1.0)  # a load cannot be interrupted; the daemon thread dies with us
+
+
+def _log_auth(settings: Settings) -> None:
+    """Say how callers are checked; the keys themselves are never logged."""
+    keys = settings.auth.keys
+    if not keys:
+        log.warning(
+            "auth: OPEN MODE, no API key is configured (DPC_AUTH__KEYS): anyone who reaches "
+            "this port may register and delete references"
+        )
+        return
+    roles = sorted(keys.values())
+    log.info(
+        "auth: %d API key(s) (%d admin, %d read); reads %s a key",
+        len(keys),
+        roles.count("admin"),
+        roles.count("read"),
+        "need" if settings.auth.require_key_for_reads else "do not need",
+    )
+
+
+def _load(catalog: Catalog, settings: Settings, loading: Loading) -> None:
+    """Seed, refresh and load the gallery; record the outcome for the health routes."""
+    try:
+        catalog.load(settings.model.gallery)
+    except StoreCorrupted as error:
+        log.error("the gallery store is damaged: %s", error)
+        loading.detail, loading.status = f"the gallery store is damaged: {error}", "failed"
+    except Exception as error:
+        log.exception("loading the gallery failed")
+        loading.detail, loading.status = f"loading the gallery failed: {error}", "failed"
+    else:
+        loading.detail, loading.status = None, "ok"
+
+
+class BodyLimit:
+    """413 for a body over ``max_bytes``: by its Content-Length, or by the bytes actually read."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int):
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = dict(scope["headers"]).get(b"content-length")
+        if declared is not None:
+            if not declared.isdigit():
+                await _answer(scope, receive, send, 400, "Content-Length is not a number")
+                return
+            if int(declared) > self.max_bytes:
+                await _answer(scope, receive, send, 413, self.message(int(declared)))
+                return
+        received = 0
+
+        async def limited() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_bytes:
+                    raise BodyTooLarge(self.message(received, at_least=True))
+            return message
+
+        await self.app(scope, limited, send)
+
+    def message(self, size: int, at_least: bool = False) -> str:
+        return (
+            f"the body is {'over ' if at_least else ''}{size} bytes, more than the limit of "
+            f"{self.max_bytes}: send fewer points"
+        )
+
+
+async def _answer(scope: Scope, receive: Receive, send: Send, code: int, detail: str) -> None:
+    await JSONResponse({"detail": detail}, status_code=code)(scope, receive, send)
+
+
+def _add_error_handlers(app: FastAPI) -> None:
+    """Every error answer is ``{"detail": "..."}``; an unexpected exception is a 500 (a bug)."""
+
+    def handler(code: int) -> Callable[[Request, Exception], Awaitable[JSONResponse]]:
+        async def answer(request: Request, error: Exception) -> JSONResponse:
+            headers = getattr(error, "headers", None)  # Busy's Retry-After
+            return JSONResponse({"detail": str(error)}, status_code=code, headers=headers)
+
+        return answer
+
+    for error_type, code in STATUS.items():
+        app.add_exception_handler(error_type, handler(code))
+    app.add_exception_handler(BodyTooLarge, handler(413))
+
+    async def invalid(request: Request, error: RequestValidationError) -> JSONResponse:
+        return JSONResponse({"detail": validation_message(error.errors())}, status_code=422)
+
+    async def http_error(request: Request, error: HTTPException) -> JSONResponse:
+        headers = error.headers
+        if error.status_code == 405:  # every method of the path, not only its first route's
+            headers = {**(headers or {}), "Allow": ", ".join(allowed_methods(app, request))}
+        return JSONResponse(
+            {"detail": str(error.detail)}, status_code=error.status_code, headers=headers
+        )
+
+    async def bug(request: Request, error: Exception) -> JSONResponse:
+        log.exception("unhandled error on %s %s", request.method, request.url.path)
+        rid = logs.request_id.get()
+        return JSONResponse(
+            {"detail": f"internal error ({type(error).__name__}); this is a bug"},
+            status_code=500,
+            headers={logs.HEADER: rid} if rid else None,
+        )
+
+    app.add_exception_handler(RequestValidationError, invalid)
+    app.add_exception_handler(HTTPException, http_error)
+    app.add_exception_handler(Exception, bug)
+
+
+def allowed_methods(app: FastAPI, request: Request) -> list[str]:
+    """The methods the routes of a request's path answer (Starlette names only the first's)."""
+    methods: set[str] = set()
+    for route in app.router.routes:
+        match, _ = route.matches(request.scope)
+        if match != Match.NONE:
+            methods |= getattr(route, "methods", None) or set()
+    return sorted(methods)
+
+
+def validation_message(errors: Any) -> str:
+    """pydantic/FastAPI errors as one readable line: ``top_k: Input should be ...; ...``."""
+    parts = []
+    for error in errors:
+        where = ".".join(str(p) for p in error.get("loc", ()) if p != "body")
+        message = error.get("msg", "invalid")
+        if error.get("type") == "string_pattern_mismatch":
+            message = "a reference name is 1 to 64 characters of A-Z a-z 0-9 . _ -"
+        parts.append(f"{where}: {message}" if where else message)
+    return "; ".join(parts) or "invalid request"
+
+
+def _add_metrics(app: FastAPI) -> None:
+    """Prometheus at ``/metrics``: requests, latencies and status codes per route, references."""
+    registry = CollectorRegistry()  # one per app, so several apps can live in one process
+    Instrumentator(
+        should_group_status_codes=False,
+        excluded_handlers=["/metrics"],
+        registry=registry,
+    ).instrument(app).expose(app, endpoint="/metrics", include_in_schema=False)
+    app.state.metrics_references = Gauge(
+        "dpc_references", "References in the gallery", registry=registry
+    )
+
+
+def _document_auth(document: dict[str, Any], settings: Settings) -> None:
+    """Keep the security requirements (a role each, as the scope) that this service enforces:
+    none when it is open, only the writes' when reads need no key."""
+    mode = auth.mode(settings.auth)
+    for operation in (op for path in document["paths"].values() for op in path.values()):
+        roles = {role for need in operation.get("security", []) for role in sum(need.values(), [])}
+        if mode == "open" or (mode == "keys-for-writes" and roles == {"read"}):
+            operation.pop("security", None)
+            for code in ("401", "403"):
+                operation.get("responses", {}).pop(code, None)
+    if mode == "open":
+        document.get("components", {}).pop("securitySchemes", None)
+
+
+def _openapi(app: FastAPI) -> dict[str, Any]:
+    """The generated document, plus the request bodies the routes read themselves."""
+    if app.openapi_schema:
+        return app.openapi_schema
+    document = get_openapi(
+        title=app.title, version=app.version, description=app.description, routes=app.routes
+    )
+    schemas = document.setdefault("components", {}).setdefault("schemas", {})
+    # our 422 is {"detail": "..."} (validation_message), not FastAPI's list of errors
+    for operation in (op for path in document["paths"].values() for op in path.values()):
+        invalid = operation.get("responses", {}).get("422")
+        if invalid:
+            invalid["content"] = {"application/json": {"schema": {"$ref": ERROR_REF}}}
+    for name in ("HTTPValidationError", "ValidationError"):
+        schemas.pop(name, None)
+    _document_auth(document, app.state.settings)
+    for model in (AlignRequest, ReferenceRequest):
+        schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
+        schemas.update(schema.pop("$defs", {}))
+        schemas[model.__name__] = schema
+    name = ReferenceRequest.model_json_schema()["properties"]["name"]
+    schemas["ReferenceUpload"] = {
+        "title": "ReferenceUpload",
+        "type": "object",
+        "required": ["name", "file"],
+        "properties": {
+            "name": name,
+            "file": {
+                "type": "string",
+                "format": "binary",
+                "description": "a mesh (.stl, .obj, .ply) or a cloud (.ply, .pcd, .npy)",
+            },
+        },
+    }
+    app.openapi_schema = document
+    return document

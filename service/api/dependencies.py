@@ -1,0 +1,70 @@
+"""What routes get injected with ``Depends``: read from ``app.state``, set up by the app's lifespan.
+
+Routes that need the gallery answer 503 until it has loaded.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated
+
+from fastapi import Depends, Request
+
+from service.api.limiter import Limiter
+from service.engine.engine import Engine
+from service.gallery.catalog import Catalog
+from service.settings import Settings
+
+
+class NotReady(RuntimeError):
+    """The model or the gallery is not loaded (yet), 503."""
+
+
+@dataclass
+class Loading:
+    """Whether the gallery has loaded; written by the loading thread, read by the routes."""
+
+    status: str = "loading"  # -> "ok" | "failed"
+    detail: str | None = "loading the gallery"
+
+    @property
+    def ready(self) -> bool:
+        return self.status == "ok"
+
+
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+def get_loading(request: Request) -> Loading:
+    return request.app.state.loading
+
+
+def get_loading_catalog(request: Request) -> Catalog:
+    """The catalog, loaded or not (for health)."""
+    return request.app.state.catalog
+
+
+def get_catalog(request: Request) -> Catalog:
+    """The catalog, once the gallery has loaded."""
+    loading: Loading = request.app.state.loading
+    if not loading.ready:
+        raise NotReady(f"the service is not ready: {loading.detail}")
+    return request.app.state.catalog
+
+
+def get_engine(catalog: Annotated[Catalog, Depends(get_catalog)]) -> Engine:
+    return catalog.engine
+
+
+def get_limiter(request: Request) -> Limiter:
+    """The slots, threads and time budget of the engine's work (``service.api.limiter``)."""
+    return request.app.state.limiter
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+LoadingDep = Annotated[Loading, Depends(get_loading)]
+LoadingCatalogDep = Annotated[Catalog, Depends(get_loading_catalog)]
+CatalogDep = Annotated[Catalog, Depends(get_catalog)]
+EngineDep = Annotated[Engine, Depends(get_engine)]
+LimiterDep = Annotated[Limiter, Depends(get_limiter)]

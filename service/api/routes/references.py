@@ -1,0 +1,164 @@
+"""``/references``: register, list, describe and remove the objects the service recognises."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Request, Response, status
+from starlette.datastructures import UploadFile
+from starlette.exceptions import HTTPException
+
+from service.api.auth import AdminAccess, ReadAccess
+from service.api.dependencies import CatalogDep, EngineDep, LimiterDep, SettingsDep
+from service.api.limiter import Job
+from service.api.parsers import read_points
+from service.api.routes.common import (
+    JSON,
+    body_kind,
+    errors,
+    invalid,
+    json_object,
+    parse,
+    require,
+)
+from service.api.schemas import (
+    ReferenceIdentity,
+    ReferenceInfo,
+    ReferenceList,
+    ReferenceResponse,
+    SelfCheck,
+)
+from service.api.validation import validate_points
+from service.engine.reference import Reference
+from service.errors import UnknownReference
+from service.gallery.catalog import Catalog
+from service.settings import Settings
+
+router = APIRouter(prefix="/references", tags=["references"])
+
+MULTIPART = "multipart/form-data"
+BODY = {
+    "required": True,
+    "content": {
+        JSON: {"schema": {"$ref": "#/components/schemas/ReferenceRequest"}},
+        MULTIPART: {"schema": {"$ref": "#/components/schemas/ReferenceUpload"}},
+    },
+}
+
+
+@router.post(
+    "",
+    status_code=status.HTTP_201_CREATED,
+    response_model=ReferenceResponse,
+    summary="Register an object (201), or replace one with ?replace=true (200)",
+    responses={200: {"model": ReferenceResponse, "description": "replaced"}}
+    | errors(401, 403, 409, 413, 415, 422, 503, 504),
+    openapi_extra={"requestBody": BODY},
+    dependencies=[AdminAccess],
+)
+async def register(
+    request: Request,
+    response: Response,
+    catalog: CatalogDep,
+    settings: SettingsDep,
+    limiter: LimiterDep,
+    replace: Annotated[bool, Query(description="replace a reference of that name")] = False,
+    self_check: Annotated[bool, Query(description="align the new reference with itself")] = True,
+) -> ReferenceResponse:
+    """JSON ``{"name", "points"}``, or multipart ``name`` + ``file`` (STL, OBJ, PLY, PCD, NPY)."""
+    if body_kind(request, JSON, MULTIPART) == MULTIPART:
+        try:
+            async with request.form(max_files=1, max_fields=4) as form:
+                name, upload = form.get("name"), form.get("file")
+                if not isinstance(upload, UploadFile):
+                    raise invalid("upload the mesh or cloud as a file field", "file")
+                source = (await upload.read(), upload.filename)
+        except HTTPException as error:  # Starlette's 400 for a malformed multipart body
+            raise invalid(
+                f"the multipart body is unusable ({error.detail}): send a 'name' field and a "
+                "'file' field"
+            ) from None
+        fields = {} if name is None else {"name": name}
+    else:
+        fields, source = json_object(await request.body()), None
+    poses = settings.gallery.self_check_poses if self_check else 0
+    reference, created, checks = await limiter.write(
+        _register, catalog, settings, fields, source, replace, poses
+    )
+    response.status_code = status.HTTP_201_CREATED if created else status.HTTP_200_OK
+    return ReferenceResponse(
+        **_info(reference).model_dump(),
+        self_check=None if checks is None else [SelfCheck.model_validate(c) for c in checks],
+    )
+
+
+def _register(
+    job: Job,
+    catalog: Catalog,
+    settings: Settings,
+    fields: dict,
+    source: tuple[bytes, str | None] | None,
+    replace: bool,
+    self_check_poses: int,
+) -> tuple[Reference, bool, list[dict] | None]:
+    """Validate, read the points, compute and store the reference (in a worker thread)."""
+    identity = parse(ReferenceIdentity, {k: v for k, v in fields.items() if k != "points"})
+    if source is None:
+        points = require(fields, "points")
+    else:
+        points = read_points(*source, mesh_points=settings.gallery.reference_points)
+    limits = settings.limits
+    points = validate_points(points, limits.min_points, limits.max_points)
+    return catalog.register(identity.name, points, replace, self_check_poses, job.commit)
+
+
+@router.get(
+    "",
+    response_model=ReferenceList,
+    summary="List the references",
+    responses=errors(401, 503),
+    dependencies=[ReadAccess],
+)
+async def list_references(engine: EngineDep) -> ReferenceList:
+    references = (engine.get(name) for name in sorted(engine.names()))
+    return ReferenceList(references=[_info(r) for r in references if r is not None])
+
+
+@router.get(
+    "/{name}",
+    response_model=ReferenceInfo,
+    summary="Describe a reference",
+    responses=errors(401, 404, 503),
+    dependencies=[ReadAccess],
+)
+async def describe(name: str, engine: EngineDep) -> ReferenceInfo:
+    reference = engine.get(name)
+    if reference is None:
+        raise UnknownReference(f"no reference named '{name}'")
+    return _info(reference)
+
+
+@router.delete(
+    "/{name}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    response_class=Response,
+    summary="Remove a reference",
+    responses=errors(401, 403, 404, 503, 504),
+    dependencies=[AdminAccess],
+)
+async def remove(name: str, catalog: CatalogDep, limiter: LimiterDep) -> Response:
+    await limiter.write(_remove, catalog, name)  # refits the classifier
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+def _remove(job: Job, catalog: Catalog, name: str) -> None:
+    catalog.remove(name, job.commit)
+
+
+def _info(reference: Reference) -> ReferenceInfo:
+    return ReferenceInfo(
+        name=reference.name,
+        num_points=len(reference.points),
+        scale=float(reference.scale),
+        points_sha256=reference.points_sha256,
+    )

@@ -1,0 +1,124 @@
+"""Request and response bodies of the HTTP contract (shared/API.md), as pydantic models.
+
+They are the OpenAPI document a client generator reads. The routes validate the small fields
+with these models and the (possibly 200,000-long) point lists with ``service.api.validation``.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+
+ReferenceName = Annotated[
+    str,
+    StringConstraints(pattern=r"^[A-Za-z0-9._-]{1,64}$"),
+    Field(description="1 to 64 characters of A-Z a-z 0-9 . _ -", examples=["bracket-a"]),
+]
+Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Row4 = Annotated[list[float], Field(min_length=4, max_length=4)]
+Matrix3 = Annotated[list[Vector3], Field(min_length=3, max_length=3)]
+Matrix4 = Annotated[list[Row4], Field(min_length=4, max_length=4)]
+Points = Annotated[
+    list[Vector3],
+    Field(description="[x, y, z] triples in the sensor's units", examples=[[[0, 0, 0]]]),
+]
+
+
+# Requests
+class AlignOptions(BaseModel):
+    """What ``POST /align`` takes besides the points."""
+
+    candidates: list[ReferenceName] | None = Field(
+        None, min_length=1, description="restrict the search to these references"
+    )
+    top_k: int | None = Field(
+        None, ge=1, description="how many candidates to verify geometrically (default: server's)"
+    )
+    refine: bool = Field(True, description="refine the pose with ICP")
+
+
+class AlignRequest(AlignOptions):
+    points: Points
+
+
+class ReferenceIdentity(BaseModel):
+    """What ``POST /references`` takes besides the points."""
+
+    name: ReferenceName
+
+
+class ReferenceRequest(ReferenceIdentity):
+    points: Points
+
+
+# Responses
+class CandidateFit(BaseModel):
+    label: str
+    score: float = Field(description="the classifier's probability for this reference")
+    alignment_error: float = Field(description="mean observed-to-reference distance, scene units")
+    alignment_error_normalized: float = Field(description="alignment_error / the scale")
+    hypothesis: str = Field(description="the hypothesis source whose pose fitted best")
+
+
+class AlignResponse(BaseModel):
+    label: str = Field(description="the recognised reference")
+    score: float
+    rotation: Matrix3 = Field(description="R of scene_point = R @ model_point + t")
+    translation: Vector3 = Field(description="t of scene_point = R @ model_point + t")
+    transform: Matrix4 = Field(description="[[R, t], [0, 0, 0, 1]]")
+    alignment_error: float = Field(description="mean observed-to-reference distance, scene units")
+    alignment_error_normalized: float = Field(description="alignment_error / the scale")
+    hypothesis: str = Field(description="which hypothesis source won")
+    candidates: list[CandidateFit]
+    timings_ms: dict[str, float] = Field(description="per stage, and 'total'")
+
+
+class SelfCheck(BaseModel):
+    """One pose of the registration self-check: the new reference moved and aligned back."""
+
+    model_config = ConfigDict(extra="allow")
+
+    rotation_error_deg: float
+    alignment_error_normalized: float
+    label_ok: bool
+
+
+class ReferenceInfo(BaseModel):
+    name: str
+    num_points: int
+    scale: float = Field(description="radius: the largest distance from the centroid to a point")
+    points_sha256: str = Field(
+        description="sha256 of the stored points as little-endian float32 x y z triples"
+    )
+
+
+class ReferenceResponse(ReferenceInfo):
+    self_check: list[SelfCheck] | None = Field(
+        None, description="registration only: how well the reference aligns with itself"
+    )
+
+
+class ReferenceList(BaseModel):
+    references: list[ReferenceInfo]
+
+
+class ModelIdentity(BaseModel):
+    path: str
+    sha256: str
+
+
+class Health(BaseModel):
+    status: Literal["ok", "loading", "failed"]
+    auth: Literal["open", "keys", "keys-for-writes"] = Field(
+        description="open: no API key is configured; keys: every operation but health needs "
+        "one; keys-for-writes: only registering and deleting need one"
+    )
+    model: ModelIdentity
+    providers: list[str] = Field(description="onnxruntime execution providers in use")
+    references: int
+    detail: str | None = Field(None, description="why the service is not ready")
+
+
+class Error(BaseModel):
+    detail: str

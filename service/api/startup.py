@@ -1,0 +1,118 @@
+"""What must hold before the service answers anything, checked once at start.
+
+``prepare(settings)`` loads the model and opens the gallery store, or raises ``StartupError``
+with one message that says what to fix: a missing, unreadable or corrupt model file (its
+sha256 against the manifest beside it, when there is one), a seed gallery that does not match
+the manifest, a data directory that cannot be written, a database that is not a gallery or
+was written by a newer version of the service. ``python -m service`` turns that into one line
+on stderr and exit status 2; the app's lifespan calls it too, so an app built in-process
+fails to start the same way. References computed with another model file are not an error:
+the catalog recomputes them from their stored points when the gallery loads.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import tempfile
+from pathlib import Path
+
+import onnxruntime as ort
+
+from service.engine.mapping import Mapper, file_sha256
+from service.gallery.store import FILENAME, GalleryStore, StoreIncompatible
+from service.settings import Settings
+
+EXIT_STATUS = 2
+
+
+class StartupError(RuntimeError):
+    """The service cannot start; the message says why and what to change."""
+
+
+def prepare(settings: Settings) -> tuple[Mapper, GalleryStore]:
+    """The loaded model and the open store, after every check."""
+    model_hash = check_model_files(settings)
+    mapper = load_model(settings, model_hash)
+    check_data_dir(settings.gallery.data_dir)
+    try:
+        store = GalleryStore.in_dir(settings.gallery.data_dir)
+    except StoreIncompatible as error:
+        raise StartupError(str(error)) from None
+    except (OSError, sqlite3.Error) as error:
+        raise StartupError(
+            f"cannot open the gallery in {settings.gallery.data_dir}: {error}"
+        ) from None
+    return mapper, store
+
+
+def check_model_files(settings: Settings) -> str:
+    """The model exists and is readable; it and the seed gallery match the manifest, if any.
+
+    Returns the model's sha256, so that it is read once.
+    """
+    model = settings.model.path
+    if not model.is_file():
+        raise StartupError(f"no ONNX model at {model}: set DPC_MODEL__PATH")
+    try:
+        model_hash = file_sha256(model)
+    except OSError as error:
+        raise StartupError(f"cannot read the model {model}: {error.strerror}") from None
+    manifest_path = settings.manifest_path
+    if not manifest_path.exists():
+        return model_hash
+    try:
+        files = json.loads(manifest_path.read_text())["files"]
+        expected = files[model.name]["sha256"]
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise StartupError(
+            f"the manifest {manifest_path} is unreadable or does not list {model.name} "
+            f"({type(error).__name__}: {error}): restore it from the model's release"
+        ) from None
+    if model_hash != expected:
+        raise StartupError(
+            f"the model {model} is damaged or not the released one: its sha256 is "
+            f"{model_hash[:12]}..., the manifest {manifest_path} says {expected[:12]}...; "
+            "restore both files from the same release"
+        )
+    gallery = settings.model.gallery
+    listed = files.get(gallery.name) if isinstance(files, dict) else None
+    same_release = gallery.parent.resolve() == manifest_path.parent.resolve()
+    if same_release and gallery.is_file() and isinstance(listed, dict) and "sha256" in listed:
+        if file_sha256(gallery) != listed["sha256"]:
+            raise StartupError(
+                f"the seed gallery {gallery} does not match the manifest {manifest_path}: "
+                "restore both files from the same release"
+            )
+    return model_hash
+
+
+def load_model(settings: Settings, model_hash: str | None = None) -> Mapper:
+    try:
+        return Mapper.from_settings(settings.model, model_hash)
+    except Exception as error:  # onnxruntime raises its own types for an unusable file
+        first_line = str(error).strip().splitlines()[0] if str(error).strip() else ""
+        raise StartupError(
+            f"the model {settings.model.path} is not a usable ONNX model ({first_line}): "
+            "restore it from the model's release"
+        ) from None
+
+
+def check_data_dir(data_dir: Path) -> None:
+    """The data directory exists (or can be made) and a file can be written in it."""
+    try:
+        data_dir.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=data_dir, prefix=".write-check-"):
+            pass
+    except OSError as error:
+        reason = error.strerror or str(error)
+        raise StartupError(
+            f"the data directory {data_dir} is not a writable directory ({reason}): "
+            f"set DPC_GALLERY__DATA_DIR to a directory this user may write ({FILENAME} "
+            "lives there)"
+        ) from None
+
+
+def quiet_onnxruntime() -> None:
+    """onnxruntime's own log lines would add to the one-line message of a failed start."""
+    ort.set_default_logger_severity(3)

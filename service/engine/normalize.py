@@ -1,0 +1,49 @@
+"""Step 1 of the chain: put a cloud in the frame the network was trained in.
+
+The network sees points centred on their centroid and divided by the radius
+(the largest distance from the centroid to a point, the contract's *scale*),
+so the same object gives the same input at any position and size. Optionally
+the cloud is also rotated into its principal-axes frame (``canonical=True``),
+which removes most of the pose before the network sees it; the paper's
+network sees the centred and scaled cloud only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.engine.principal_axes import principal_frame
+
+
+@dataclass(frozen=True)
+class Normalized:
+    points: np.ndarray  # (N, 3) float32: the network's input, ((p - centroid) @ frame) / scale
+    centroid: np.ndarray  # (3,)
+    scale: float
+    frame: np.ndarray  # (3, 3) rotation, columns are the axes the input is expressed in
+
+
+def radius(points: np.ndarray, centroid: np.ndarray | None = None) -> float:
+    """The scale of a cloud: the largest distance from its centroid to one of its points."""
+    centre = points.mean(axis=0) if centroid is None else centroid
+    return float(np.sqrt(((points - centre) ** 2).sum(axis=1).max()))
+
+
+def normalize(points: np.ndarray, canonical: bool = False) -> Normalized:
+    """Centre on the centroid, divide by the radius, and optionally rotate to principal axes."""
+    points = np.asarray(points, dtype=np.float64)
+    centroid = points.mean(axis=0)
+    centred = points - centroid
+    scale = radius(points, centroid)
+    frame = principal_frame(centred) if canonical else np.eye(3)
+    network_input = (centred @ frame) / scale
+    return Normalized(network_input.astype(np.float32), centroid, scale, frame)
+
+
+def subsample(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """Indices of at most ``count`` points chosen at random without replacement."""
+    if len(points) <= count:
+        return np.arange(len(points))
+    return np.sort(rng.choice(len(points), size=count, replace=False))
