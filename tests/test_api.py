@@ -344,6 +344,26 @@ def test_bad_align_requests(api, seeded):
     assert xml.status_code == 415 and "application/xml" in detail(xml)
 
 
+def test_viewpoint_is_three_finite_numbers(api, seeded):
+    scene = moved(box_points(400, seed=7))[0]
+    fine = api.post("/align", json={"points": scene.tolist(), "viewpoint": [0, 0, 0]})
+    assert fine.status_code == 200, fine.text
+    raw = {"content-type": "application/octet-stream"}
+    body = scene.astype("<f4").tobytes()
+    assert api.post("/align?viewpoint=0,0.5,-1", content=body, headers=raw).status_code == 200
+    for bad in ([0, 0], [0, 0, 0, 0], ["a", 0, 0], "0,0,0", {"x": 0}):
+        response = api.post("/align", json={"points": scene.tolist(), "viewpoint": bad})
+        assert response.status_code == 422 and "viewpoint" in detail(response), (bad, response.text)
+    nan = json.dumps({"points": scene.tolist(), "viewpoint": [0, float("nan"), 0]})
+    response = api.post("/align", content=nan, headers={"content-type": "application/json"})
+    assert response.status_code == 422 and "finite" in detail(response)
+    for bad in ("0,0", "a,b,c", "1,2,inf", "1,,2"):
+        response = api.post(f"/align?viewpoint={bad}", content=body, headers=raw)
+        assert response.status_code == 422 and "viewpoint" in detail(response), bad
+    confidence = api.post("/align", json={"points": scene.tolist(), "min_confidence": 1.5})
+    assert confidence.status_code == 422 and "min_confidence" in detail(confidence)
+
+
 def test_a_body_over_the_limit_is_413(api):
     big = b"\0" * (MAX_BODY + 12)
     raw = {"content-type": "application/octet-stream"}

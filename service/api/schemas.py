@@ -6,9 +6,10 @@ with these models and the (possibly 200,000-long) point lists with ``service.api
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, field_validator
 
 ReferenceName = Annotated[
     str,
@@ -36,6 +37,21 @@ class AlignOptions(BaseModel):
         None, ge=1, description="how many candidates to verify geometrically (default: server's)"
     )
     refine: bool = Field(True, description="refine the pose with ICP")
+    viewpoint: Vector3 | None = Field(
+        None,
+        description="where the sensor was, [x, y, z] in the cloud's own coordinates "
+        "([0, 0, 0] for a cloud in a depth camera's frame)",
+    )
+    min_confidence: float | None = Field(
+        None, ge=0, le=1, description="below it the verdict is never 'match' (default: server's)"
+    )
+
+    @field_validator("viewpoint")
+    @classmethod
+    def _finite(cls, viewpoint: list[float] | None) -> list[float] | None:
+        if viewpoint is not None and not all(math.isfinite(v) for v in viewpoint):
+            raise ValueError("the viewpoint must be three finite numbers [x, y, z]")
+        return viewpoint
 
 
 class AlignRequest(AlignOptions):
@@ -61,6 +77,12 @@ class CandidateFit(BaseModel):
     hypothesis: str = Field(description="the hypothesis source whose pose fitted best")
 
 
+class AlternativePose(BaseModel):
+    rotation: Matrix3
+    translation: Vector3
+    confidence: float
+
+
 class AlignResponse(BaseModel):
     label: str = Field(description="the recognised reference")
     score: float
@@ -72,6 +94,18 @@ class AlignResponse(BaseModel):
     hypothesis: str = Field(description="which hypothesis source won")
     candidates: list[CandidateFit]
     timings_ms: dict[str, float] = Field(description="per stage, and 'total'")
+    verdict: Literal["match", "uncertain", "no_match"] = Field(
+        description="only 'match' is safe to act on; otherwise label and pose are a best guess"
+    )
+    confidence: float | None = Field(
+        None, description="estimated probability that label and pose (ADD-S < 0.1) are right"
+    )
+    reasons: list[str] = Field(description="why the verdict is not 'match', and what to change")
+    ambiguous: bool = Field(description="other poses, not related by symmetry, fit alike")
+    alternatives: list[AlternativePose]
+    points_set_aside: int = Field(
+        0, description="observed points left out as a support plane, stray points or clutter"
+    )
 
 
 class SelfCheck(BaseModel):

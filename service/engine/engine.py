@@ -40,6 +40,16 @@ class CandidateFit:
 
 
 @dataclass
+class AlternativePose:
+    """A pose that fits the observation about as well as the answer, not related to it by the
+    reference's symmetry (e.g. a flat part seen edge-on)."""
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    confidence: float
+
+
+@dataclass
 class Alignment:
     label: str
     score: float
@@ -50,6 +60,13 @@ class Alignment:
     hypothesis: str  # the source of the winning hypothesis
     candidates: list[CandidateFit]
     timings_ms: dict[str, float] = field(default_factory=dict)
+    # whether to act on it: only "match" is safe; "uncertain" and "no_match" say why in reasons
+    verdict: str = "match"
+    confidence: float | None = None  # calibrated probability that label and pose are right
+    reasons: list[str] = field(default_factory=list)
+    ambiguous: bool = False
+    alternatives: list[AlternativePose] = field(default_factory=list)
+    points_set_aside: int = 0  # observed points left out as support plane, strays, clutter
 
 
 @dataclass(frozen=True)
@@ -205,7 +222,11 @@ class Engine:
         top_k: int | None = None,
         refine: bool = True,
         hypotheses: tuple[str, ...] | None = None,
+        viewpoint: np.ndarray | None = None,
+        min_confidence: float | None = None,
     ) -> Alignment:
+        """Recognise and pose the object in ``points``; ``viewpoint`` is where the sensor was,
+        in the cloud's frame, if known; below ``min_confidence`` the verdict is never "match"."""
         snapshot, settings = self._snapshot, self.settings
         if not snapshot.entries:
             raise EmptyGallery("no reference is registered: register one with POST /references")

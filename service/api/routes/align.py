@@ -9,8 +9,22 @@ from fastapi import APIRouter, Query, Request
 
 from service.api.auth import ReadAccess
 from service.api.dependencies import EngineDep, LimiterDep, SettingsDep
-from service.api.routes.common import JSON, body_kind, errors, json_object, parse, require
-from service.api.schemas import AlignOptions, AlignResponse, CandidateFit, ReferenceName
+from service.api.routes.common import (
+    JSON,
+    body_kind,
+    errors,
+    invalid,
+    json_object,
+    parse,
+    require,
+)
+from service.api.schemas import (
+    AlignOptions,
+    AlignResponse,
+    AlternativePose,
+    CandidateFit,
+    ReferenceName,
+)
 from service.api.validation import points_from_raw, validate_points
 from service.engine.engine import Alignment, Engine
 from service.settings import LimitSettings
@@ -47,12 +61,22 @@ async def align(
     candidates: Annotated[list[ReferenceName] | None, Query()] = None,
     top_k: Annotated[int | None, Query(ge=1)] = None,
     refine: Annotated[bool | None, Query()] = None,
+    viewpoint: Annotated[
+        str | None, Query(description="where the sensor was: x,y,z", examples=["0,0,0"])
+    ] = None,
+    min_confidence: Annotated[float | None, Query(ge=0, le=1)] = None,
 ) -> AlignResponse:
     """JSON ``{"points": [[x, y, z], ...], ...}``, or a raw body of little-endian float32
-    ``x y z`` triples with ``candidates``, ``top_k`` and ``refine`` as query parameters."""
+    ``x y z`` triples with the options as query parameters (``viewpoint=x,y,z``)."""
     kind = body_kind(request, JSON, RAW)
     body = await request.body()
-    query = {"candidates": candidates, "top_k": top_k, "refine": refine}
+    query = {
+        "candidates": candidates,
+        "top_k": top_k,
+        "refine": refine,
+        "viewpoint": None if viewpoint is None else vector(viewpoint, "viewpoint"),
+        "min_confidence": min_confidence,
+    }
     query = {key: value for key, value in query.items() if value is not None}
     return await limiter.align(_align, engine, settings.limits, body, kind, query)
 
@@ -68,8 +92,27 @@ def _align(
         data = json_object(body)
         options = parse(AlignOptions, {**query, **{k: v for k, v in data.items() if k != "points"}})
         points = validate_points(require(data, "points"), limits.min_points, limits.max_points)
-    alignment = engine.align(points, options.candidates, options.top_k, options.refine)
+    viewpoint = None if options.viewpoint is None else np.asarray(options.viewpoint, np.float64)
+    alignment = engine.align(
+        points,
+        options.candidates,
+        options.top_k,
+        options.refine,
+        viewpoint=viewpoint,
+        min_confidence=options.min_confidence,
+    )
     return alignment_response(alignment)
+
+
+def vector(text: str, name: str) -> list[float]:
+    """Three comma-separated finite numbers from a query parameter, or a 422 naming it."""
+    try:
+        values = [float(part) for part in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(np.isfinite(values)):
+        raise invalid(f"'{text[:40]}' is not three finite numbers x,y,z", name)
+    return values
 
 
 def alignment_response(alignment: Alignment) -> AlignResponse:
@@ -89,4 +132,17 @@ def alignment_response(alignment: Alignment) -> AlignResponse:
             CandidateFit.model_validate(fit, from_attributes=True) for fit in alignment.candidates
         ],
         timings_ms=alignment.timings_ms,
+        verdict=alignment.verdict,
+        confidence=alignment.confidence,
+        reasons=alignment.reasons,
+        ambiguous=alignment.ambiguous,
+        alternatives=[
+            AlternativePose(
+                rotation=np.asarray(a.rotation, float).tolist(),
+                translation=np.asarray(a.translation, float).tolist(),
+                confidence=a.confidence,
+            )
+            for a in alignment.alternatives
+        ],
+        points_set_aside=alignment.points_set_aside,
     )
