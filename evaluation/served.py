@@ -19,8 +19,7 @@ from pathlib import Path
 import httpx
 
 from service.engine.reference import Reference
-from service.gallery.catalog import SEEDED_KEY
-from service.gallery.store import GalleryStore
+from service.gallery.sqlite_store import SQLiteStore
 from service.settings import Settings
 
 REPO = Path(__file__).resolve().parent.parent
@@ -159,5 +158,4 @@ def run_service(timeout_s: float = 60, **settings: str) -> subprocess.CompletedP
 def seed_store(data_dir: Path, references: list[Reference], model_hash: str) -> None:
     """Write the references into a fresh store, marked seeded so the service adds nothing."""
     data_dir.mkdir(parents=True, exist_ok=True)
-    store = GalleryStore.in_dir(data_dir)
-    store.put_many(references, model_hash, meta={SEEDED_KEY: "evaluation.served"})
+    SQLiteStore.in_dir(data_dir).seed(references, model_hash, "evaluation.served")

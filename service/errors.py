@@ -18,3 +18,7 @@ class EmptyGallery(RuntimeError):
 
 class ReferenceExists(RuntimeError):
     """A reference of that name is registered and replace was not asked for (409)."""
+
+
+class StoreUnavailable(RuntimeError):
+    """The gallery's database cannot be reached or used right now (503); worth a retry."""

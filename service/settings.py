@@ -48,9 +48,22 @@ class EngineSettings(BaseModel):
 
 class GallerySettings(BaseModel):
     data_dir: Path = REPO_ROOT / "data"  # the SQLite database lives here
+    # postgresql://user:password@host:5432/database: the gallery in PostgreSQL, shared by every
+    # replica that names it; none: SQLite in data_dir
+    url: str | None = Field(None, repr=False)
+    poll_s: float = Field(0.5, gt=0)  # how often a replica checks for others' changes anyway
+    listen: bool = True  # PostgreSQL LISTEN/NOTIFY (off behind a pooler in transaction mode)
+    pool_size: int = Field(4, ge=1)  # PostgreSQL connections per replica
     reference_points: int = Field(2048, ge=64)  # a mesh upload is sampled to this many points
     max_references: int = Field(1000, ge=1)
     self_check_poses: int = Field(3, ge=0)  # poses a registration is checked on (0: no check)
+
+    @field_validator("url")
+    @classmethod
+    def _a_postgresql_url(cls, url: str | None) -> str | None:
+        if url and not url.startswith(("postgresql://", "postgres://")):
+            raise ValueError("a postgresql://user:password@host:5432/database URL")
+        return url or None
 
 
 class LimitSettings(BaseModel):

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from service.engine.sampling import load_mesh, sample_surface
+from tests.backends import BACKENDS, Backend
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -21,3 +22,23 @@ def pybullet_mesh(relative: str):
 def duck_points() -> np.ndarray:
     """An asymmetric real object: the duck, 2,048 surface points."""
     return sample_surface(pybullet_mesh("duck.obj"), 2048, 0).astype(np.float64)
+
+
+@pytest.fixture(scope="session")
+def postgres_server():
+    """A throwaway PostgreSQL server for the session; the PostgreSQL cases skip without one."""
+    from evaluation.postgres import ThrowawayPostgres, Unavailable
+
+    try:
+        server = ThrowawayPostgres()
+    except Unavailable as error:
+        pytest.skip(f"PostgreSQL cases need a server: {error}")
+    yield server
+    server.close()
+
+
+@pytest.fixture(scope="module", params=BACKENDS)
+def backend(request, tmp_path_factory) -> Backend:
+    """Each gallery store backend in turn: SQLite, then PostgreSQL."""
+    server = request.getfixturevalue("postgres_server") if request.param == "postgresql" else None
+    return Backend(request.param, tmp_path_factory, server)

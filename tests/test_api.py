@@ -1,7 +1,8 @@
 """The HTTP contract of shared/API.md, against the real app and model over real HTTP.
 
-Each server is uvicorn in a background thread on a free loopback port, with its own data
-directory; the model and the seed gallery are the shipped ones (``DPC_MODEL__PATH`` and
+Each server is uvicorn in a background thread on a free loopback port, with a gallery of its
+own; the module runs against each store backend (SQLite, then PostgreSQL: ``backend``). The
+model and the seed gallery are the shipped ones (``DPC_MODEL__PATH`` and
 ``DPC_MODEL__GALLERY`` point elsewhere). Skipped when the model file is missing.
 """
 
@@ -10,7 +11,6 @@ from __future__ import annotations
 import io
 import json
 import socket
-import sqlite3
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -26,8 +26,8 @@ import uvicorn
 from service.api.app import create_app
 from service.engine.mapping import file_sha256
 from service.engine.reference import Reference
-from service.gallery.store import GalleryStore
-from service.settings import EngineSettings, GallerySettings, LimitSettings, Settings
+from service.settings import EngineSettings, LimitSettings, Settings
+from tests.backends import Location
 
 SHIPPED = Settings()
 pytestmark = pytest.mark.skipif(
@@ -42,11 +42,11 @@ MAX_BODY = 2 * 1024 * 1024
 class Server:
     """The app served by uvicorn in a thread, and an httpx client for it."""
 
-    def __init__(self, data_dir: Path, gallery: Path | None = None, wait_ready: bool = True):
+    def __init__(self, location: Location, gallery: Path | None = None, wait_ready: bool = True):
         self.settings = Settings(
             model=SHIPPED.model.model_copy(update={"gallery": gallery or SHIPPED.model.gallery}),
             engine=EngineSettings(),
-            gallery=GallerySettings(data_dir=data_dir, reference_points=512, self_check_poses=2),
+            gallery=location.settings(reference_points=512, self_check_poses=2),
             limits=LimitSettings(max_points=MAX_POINTS, max_body_bytes=MAX_BODY),
         )
         with socket.socket() as probe:
@@ -74,13 +74,14 @@ class Server:
 
 
 @pytest.fixture(scope="module")
-def data_dir(tmp_path_factory) -> Path:
-    return tmp_path_factory.mktemp("data")
+def location(backend) -> Location:
+    """The module's gallery: SQLite in a folder, then a PostgreSQL database (``backend``)."""
+    return backend.new()
 
 
 @pytest.fixture(scope="module")
-def server(data_dir):
-    running = Server(data_dir)
+def server(location):
+    running = Server(location)
     yield running
     running.stop()
 
@@ -478,8 +479,8 @@ def test_openapi_document(api):
 # --- other servers: empty, restarted, damaged -----------------------------------------
 
 
-def test_an_empty_gallery_answers_409(tmp_path):
-    empty = Server(tmp_path / "data", gallery=tmp_path / "none.npz")
+def test_an_empty_gallery_answers_409(backend, tmp_path):
+    empty = Server(backend.new(), gallery=tmp_path / "none.npz")
     try:
         assert empty.client.get("/health").json()["references"] == 0
         response = empty.client.post("/align", json={"points": GOOD})
@@ -488,7 +489,7 @@ def test_an_empty_gallery_answers_409(tmp_path):
         empty.stop()
 
 
-def test_a_restart_keeps_the_references(server, data_dir, api, seeded):
+def test_a_restart_keeps_the_references(server, location, api, seeded):
     """Stops the module's server: the tests after this one start their own."""
     points = box_points(400, seed=9)
     api.post("/references?replace=true", json={"name": "kept", "points": points.tolist()})
@@ -497,7 +498,7 @@ def test_a_restart_keeps_the_references(server, data_dir, api, seeded):
     before = api.get("/references").json()
     server.stop()
 
-    again = Server(data_dir)
+    again = Server(location)
     try:
         assert again.client.get("/references").json() == before  # deleted seeds stay deleted
         assert again.client.get("/references/kept").json()["num_points"] == 400
@@ -509,18 +510,26 @@ def test_a_restart_keeps_the_references(server, data_dir, api, seeded):
         again.stop()
 
 
-def test_a_damaged_store_is_not_ready(data_dir, tmp_path):
-    damaged_dir = tmp_path / "damaged"
-    damaged_dir.mkdir()
-    source = sqlite3.connect(data_dir / "gallery.sqlite3")
-    target = sqlite3.connect(damaged_dir / "gallery.sqlite3")
-    source.backup(target)
-    source.close()
-    with target:
-        target.execute("UPDATE reference SET scale = scale * 2")
-    target.close()
+def stale_reference(name: str, points: np.ndarray) -> Reference:
+    """A reference whose mapped points and grids no model computed."""
+    return Reference(
+        name=name,
+        points=points,
+        mapped=np.zeros((len(points), 2), np.float32),
+        view_grids=np.zeros((1, 64, 64), np.float32),
+        scale=float(np.linalg.norm(points - points.mean(axis=0), axis=1).max()),
+    )
 
-    broken = Server(damaged_dir, wait_ready=False)
+
+def test_a_damaged_store_is_not_ready(backend):
+    damaged = backend.new()
+    store = damaged.store()
+    store.put(stale_reference("part", box_points(300)), model_hash="0" * 64)
+    store.set_meta("seeded_from", "")
+    store.close()
+    damaged.execute("UPDATE reference SET extras = ?", ('{"scale": 2.0}',))
+
+    broken = Server(damaged, wait_ready=False)
     try:
         deadline = time.monotonic() + 20
         while broken.client.get("/health").json()["status"] == "loading":
@@ -537,21 +546,14 @@ def test_a_damaged_store_is_not_ready(data_dir, tmp_path):
         broken.stop()
 
 
-def test_references_of_another_model_are_recomputed(tmp_path):
-    data = tmp_path / "data"
+def test_references_of_another_model_are_recomputed(backend):
+    location = backend.new()
     points = box_points(300)
-    stale = Reference(
-        name="stale",
-        points=points,
-        mapped=np.zeros((300, 2), np.float32),
-        view_grids=np.zeros((1, 64, 64), np.float32),
-        scale=float(np.linalg.norm(points - points.mean(axis=0), axis=1).max()),
-    )
-    store = GalleryStore.in_dir(data)
-    store.put(stale, model_hash="0" * 64)
+    store = location.store()
+    store.put(stale_reference("stale", points), model_hash="0" * 64)
     store.set_meta("seeded_from", "")  # as if seeded before
 
-    server = Server(data)
+    server = Server(location)
     try:
         listed = server.client.get("/references").json()["references"]
         assert [r["name"] for r in listed] == ["stale"]
@@ -562,3 +564,4 @@ def test_references_of_another_model_are_recomputed(tmp_path):
     assert record.reference.view_grids.shape[0] == server.settings.engine.view_grids
     assert np.abs(record.reference.mapped).sum() > 0
     np.testing.assert_array_equal(record.reference.points, points)
+    store.close()

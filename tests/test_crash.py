@@ -22,7 +22,7 @@ import pytest
 from service.engine.engine import Engine
 from service.engine.mapping import Mapper
 from service.gallery.catalog import Catalog
-from service.gallery.store import GalleryStore
+from service.gallery.sqlite_store import SQLiteStore
 from service.settings import EngineSettings
 from tests.servers import MODEL, ProcessServer
 
@@ -177,7 +177,7 @@ def test_acknowledged_changes_survive_sigkill(tmp_path):
 def test_a_change_the_engine_cannot_follow_is_undone_in_the_store(tmp_path, monkeypatch):
     """Store first, engine second: when the second step fails, the first is rolled back, so a
     restart cannot resurrect what the caller was told failed."""
-    store = GalleryStore.in_dir(tmp_path)
+    store = SQLiteStore.in_dir(tmp_path)
     catalog = Catalog(Engine(Mapper(MODEL.path), EngineSettings(view_grids=2)), store, 10)
     catalog.register("kept", cloud(1))
     original = catalog.engine.add

@@ -14,7 +14,8 @@ import pytest
 from service.api.app import create_app
 from service.api.startup import StartupError, prepare
 from service.engine.mapping import file_sha256
-from service.gallery.store import FILENAME, SCHEMA_VERSION, GalleryStore, StoreIncompatible
+from service.gallery.sqlite_store import FILENAME, SQLiteStore
+from service.gallery.store import SCHEMA_VERSION, StoreIncompatible
 from service.settings import GallerySettings, ModelSettings, Settings
 from tests.servers import MODEL, run_service
 
@@ -90,7 +91,7 @@ def test_a_database_that_is_not_a_database(tmp_path):
 
 def test_a_database_from_a_newer_version_stops_startup(tmp_path):
     data = tmp_path / "data"
-    GalleryStore.in_dir(data).set_meta("seeded_from", "")
+    SQLiteStore.in_dir(data).set_meta("seeded_from", "")
     newer = str(int(SCHEMA_VERSION) + 1)
     with sqlite3.connect(data / FILENAME) as conn:
         conn.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (newer,))
@@ -99,7 +100,7 @@ def test_a_database_from_a_newer_version_stops_startup(tmp_path):
     result = run_service(data)
     refused(result, f"schema version {newer}", "newer", "docs/operations.md")
     with pytest.raises(StoreIncompatible, match="newer"):
-        GalleryStore.in_dir(data)
+        SQLiteStore.in_dir(data)
     with sqlite3.connect(data / FILENAME) as conn:  # nothing written over it
         assert conn.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone() == (
             newer,

@@ -3,7 +3,8 @@
 ``create_app(settings)`` builds it; the lifespan runs the startup checks (``service.api.startup``:
 the model, its manifest, the data directory, the store's schema), then loads the gallery in a
 background thread, so ``/v2/health/live`` answers at once and ``/v2/health/ready`` turns 200
-when the gallery is in.
+when the gallery is in; the same thread then follows other replicas' changes to the store
+(``service.gallery.follower``), and readiness turns 503 while the store cannot be reached.
 """
 
 from __future__ import annotations
@@ -32,14 +33,22 @@ from service.api.routes.common import UnsupportedMediaType
 from service.api.schemas import AlignRequest, ReferenceRequest
 from service.engine.engine import Engine
 from service.engine.mapping import Mapper
-from service.errors import EmptyGallery, InvalidPoints, ReferenceExists, UnknownReference
+from service.errors import (
+    EmptyGallery,
+    InvalidPoints,
+    ReferenceExists,
+    StoreUnavailable,
+    UnknownReference,
+)
 from service.gallery.catalog import Catalog, GalleryFull
-from service.gallery.store import GalleryStore, StoreCorrupted
+from service.gallery.follower import follow
+from service.gallery.store import GalleryStore, StoreCorrupted, StoreIncompatible
 from service.settings import Settings
 
 log = logging.getLogger("service")
 
 VERSION = "0.1.0"
+LOAD_RETRY_S = 2.0  # between tries to load the gallery while its store cannot be reached
 STATUS = {  # the one status code of each error the engine, store and routes raise
     InvalidPoints: 422,
     UnknownReference: 404,
@@ -48,6 +57,7 @@ STATUS = {  # the one status code of each error the engine, store and routes rai
     GalleryFull: 409,
     UnsupportedMediaType: 415,
     NotReady: 503,
+    StoreUnavailable: 503,  # the gallery's database is out of reach: a write may be retried
     Busy: 503,  # with Retry-After
     TimedOut: 504,
 }
@@ -100,13 +110,18 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     )
     app.state.loading = loading = Loading()
     app.state.metrics_references.set_function(lambda: len(catalog.engine))
-    loader = threading.Thread(
-        target=_load, args=(catalog, settings, loading), name="gallery-load", daemon=True
+    stop = threading.Event()
+    keeper = threading.Thread(
+        target=_keep_gallery, args=(catalog, settings, loading, stop), name="gallery", daemon=True
     )
-    loader.start()
+    keeper.start()
     yield
     limiter.close()
-    loader.join(timeout=1.0)  # a load cannot be interrupted; the daemon thread dies with us
+    stop.set()
+    keeper.join(timeout=settings.gallery.poll_s + 1.0)  # a load cannot be interrupted: the
+    # daemon thread then dies with us
+    if not keeper.is_alive():
+        store.close()
 
 
 def _log_auth(settings: Settings) -> None:
@@ -128,18 +143,38 @@ def _log_auth(settings: Settings) -> None:
     )
 
 
-def _load(catalog: Catalog, settings: Settings, loading: Loading) -> None:
-    """Seed, refresh and load the gallery; record the outcome for the health routes."""
+def _keep_gallery(
+    catalog: Catalog, settings: Settings, loading: Loading, stop: threading.Event
+) -> None:
+    """Load the gallery, waiting while its store cannot be reached; then follow the changes
+    other replicas make (``service.gallery.follower``) until the app stops."""
+    while not _load(catalog, settings, loading):
+        if loading.status == "failed" or stop.wait(LOAD_RETRY_S):
+            return
+    follow(catalog, settings.gallery.poll_s, stop, loading.report_store)
+
+
+def _load(catalog: Catalog, settings: Settings, loading: Loading) -> bool:
+    """Seed, refresh and load the gallery; record the outcome for the health routes. False
+    while the store cannot be reached (try again) or when the load failed."""
     try:
         catalog.load(settings.model.gallery)
+    except StoreUnavailable as error:
+        log.warning("waiting for the gallery store: %s", error)
+        loading.detail = f"waiting for the gallery store: {error}"
+        return False
     except StoreCorrupted as error:
         log.error("the gallery store is damaged: %s", error)
         loading.detail, loading.status = f"the gallery store is damaged: {error}", "failed"
+    except StoreIncompatible as error:  # a database reached only now, of another version
+        log.error("the gallery store cannot be used: %s", error)
+        loading.detail, loading.status = f"loading the gallery failed: {error}", "failed"
     except Exception as error:
         log.exception("loading the gallery failed")
         loading.detail, loading.status = f"loading the gallery failed: {error}", "failed"
     else:
         loading.detail, loading.status = None, "ok"
+    return loading.ready
 
 
 class BodyLimit:

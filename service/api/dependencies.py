@@ -26,10 +26,16 @@ class Loading:
 
     status: str = "loading"  # -> "ok" | "failed"
     detail: str | None = "loading the gallery"
+    unreachable: str | None = None  # why the gallery store cannot be used now, while it cannot
 
     @property
     def ready(self) -> bool:
+        """The gallery is in memory: alignments are served (from it, even while the store is
+        out of reach)."""
         return self.status == "ok"
+
+    def report_store(self, problem: str | None) -> None:
+        self.unreachable = problem
 
 
 def get_settings(request: Request) -> Settings:

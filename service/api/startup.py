@@ -4,7 +4,8 @@
 with one message that says what to fix: a missing, unreadable or corrupt model file (its
 sha256 against the manifest beside it, when there is one), a seed gallery that does not match
 the manifest, a data directory that cannot be written, a database that is not a gallery or
-was written by a newer version of the service. ``python -m service`` turns that into one line
+was written by a newer version of the service (an older one is migrated). A PostgreSQL server
+that cannot be reached yet is waited for instead. ``python -m service`` turns that into one line
 on stderr and exit status 2; the app's lifespan calls it too, so an app built in-process
 fails to start the same way. References computed with another model file are not an error:
 the catalog recomputes them from their stored points when the gallery loads.
@@ -13,6 +14,7 @@ the catalog recomputes them from their stored points when the gallery loads.
 from __future__ import annotations
 
 import json
+import logging
 import sqlite3
 import tempfile
 from pathlib import Path
@@ -20,8 +22,12 @@ from pathlib import Path
 import onnxruntime as ort
 
 from service.engine.mapping import Mapper, file_sha256
-from service.gallery.store import FILENAME, GalleryStore, StoreIncompatible
-from service.settings import Settings
+from service.errors import StoreUnavailable
+from service.gallery.sqlite_store import FILENAME
+from service.gallery.store import GalleryStore, StoreIncompatible, open_store
+from service.settings import GallerySettings, Settings
+
+log = logging.getLogger(__name__)
 
 EXIT_STATUS = 2
 
@@ -34,16 +40,26 @@ def prepare(settings: Settings) -> tuple[Mapper, GalleryStore]:
     """The loaded model and the open store, after every check."""
     model_hash = check_model_files(settings)
     mapper = load_model(settings, model_hash)
-    check_data_dir(settings.gallery.data_dir)
+    return mapper, open_gallery_store(settings.gallery)
+
+
+def open_gallery_store(gallery: GallerySettings) -> GalleryStore:
+    """The store with its schema checked (and migrated). A PostgreSQL server that cannot be
+    reached yet is no reason to stop: the service waits for it, not ready until then."""
+    if not gallery.url:
+        check_data_dir(gallery.data_dir)
     try:
-        store = GalleryStore.in_dir(settings.gallery.data_dir)
+        store = open_store(gallery)
+        store.check()
     except StoreIncompatible as error:
         raise StartupError(str(error)) from None
+    except StoreUnavailable as error:
+        if not gallery.url:
+            raise StartupError(f"cannot open the gallery in {gallery.data_dir}: {error}") from None
+        log.warning("the gallery store cannot be reached yet (%s): waiting for it", error)
     except (OSError, sqlite3.Error) as error:
-        raise StartupError(
-            f"cannot open the gallery in {settings.gallery.data_dir}: {error}"
-        ) from None
-    return mapper, store
+        raise StartupError(f"cannot open the gallery in {gallery.data_dir}: {error}") from None
+    return store
 
 
 def check_model_files(settings: Settings) -> str:

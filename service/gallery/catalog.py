@@ -3,7 +3,10 @@
 Every change goes to the store first (durable) and then to the engine, under one lock, so
 the two never disagree; then the heap's free pages go back to the system (``service.memory``).
 On start the store is seeded once from the shipped gallery, and references whose mapped
-coordinates came from another model file are recomputed.
+coordinates came from another model file, or that were stored without a field this version's
+``Reference`` has, are recomputed from their points and written back. Other replicas' changes
+arrive through ``sync``: the catalog remembers the checksum of the stored row each of its
+references came from, and loads what differs.
 """
 
 from __future__ import annotations
@@ -18,13 +21,13 @@ import numpy as np
 from service import memory
 from service.engine.engine import Engine
 from service.engine.reference import Reference
-from service.errors import ReferenceExists, UnknownReference
+from service.errors import ReferenceExists
 from service.gallery.gallery_file import load_gallery
-from service.gallery.store import GalleryStore
+from service.gallery.store import SEEDED_KEY, GalleryStore, StoredReference
+
+__all__ = ["SEEDED_KEY", "Catalog", "GalleryFull"]
 
 log = logging.getLogger(__name__)
-
-SEEDED_KEY = "seeded_from"  # meta: the gallery file the store was seeded from, once
 
 
 class GalleryFull(RuntimeError):
@@ -37,6 +40,7 @@ class Catalog:
         self.store = store
         self.max_references = max_references
         self._write_lock = threading.Lock()
+        self._held: dict[str, str] = {}  # name -> checksum of the stored row it came from
 
     @property
     def model_hash(self) -> str:
@@ -46,29 +50,60 @@ class Catalog:
         """Seed the store on its first start, refresh stale references, fill the engine."""
         if self.store.get_meta(SEEDED_KEY) is None:
             self._seed(seed_gallery)
-        references = []
+        references, held = [], {}
         for record in self.store.load_records():
-            reference = record.reference
-            if record.model_hash != self.model_hash:
-                log.info("recomputing reference %r: stored for another model", reference.name)
-                reference = self.engine.make_reference(reference.name, reference.points)
-                self.store.put(reference, self.model_hash, replace=True)
+            reference, held[record.name] = self._usable(record, write_back=True)
             references.append(reference)
-        self.engine.load(references)
+        with self._write_lock:
+            self.engine.load(references)
+            self._held = held
         memory.release_free_heap()
         log.info("gallery loaded: %d references", len(references))
 
+    def sync(self) -> int:
+        """Follow what other replicas changed in the store; returns how many references
+        changed here (added, replaced or removed)."""
+        with self._write_lock:
+            stored = self.store.checksums()
+            gone = [name for name in self._held if name not in stored]
+            changed = [name for name, sha in stored.items() if self._held.get(name) != sha]
+            for name in gone:
+                if self.engine.get(name) is not None:
+                    self.engine.remove(name)
+                del self._held[name]
+            for record in self.store.load_records(changed):  # those still there
+                reference, self._held[record.name] = self._usable(record, write_back=False)
+                self.engine.add(reference)
+        if gone or changed:
+            log.info(
+                "followed the store: %d added or replaced, %d removed", len(changed), len(gone)
+            )
+            memory.release_free_heap()
+        return len(gone) + len(changed)
+
+    def _usable(self, record: StoredReference, write_back: bool) -> tuple[Reference, str]:
+        """The record's reference, recomputed from its points when it was stored for another
+        model or without a field this version needs (and then, with ``write_back``, stored
+        unless another replica changed it meanwhile); and the checksum of the row it stands for."""
+        if not record.missing and record.model_hash == self.model_hash:
+            return record.reference, record.sha256
+        why = f"stored without {', '.join(record.missing)}" if record.missing else "another model"
+        log.info("recomputing reference %r: %s", record.name, why)
+        reference = self.engine.make_reference(record.name, record.points)
+        if write_back:
+            rewritten = self.store.rewrite(reference, self.model_hash, was=record.sha256)
+            return reference, rewritten or record.sha256
+        return reference, record.sha256
+
     def _seed(self, gallery: Path | None) -> None:
-        if not self.store.is_empty():  # registered before seeding existed: never seed over it
-            self.store.set_meta(SEEDED_KEY, "")
-            return
         if gallery is None or not Path(gallery).exists():
-            log.warning("no gallery to seed the store from (%s): starting empty", gallery)
+            if self.store.is_empty():
+                log.warning("no gallery to seed the store from (%s): starting empty", gallery)
             return
         references, meta = load_gallery(Path(gallery))
         model_hash = meta.get("model_sha256") or meta.get("model_hash") or self.model_hash
-        self.store.put_many(references, model_hash, meta={SEEDED_KEY: str(gallery)})
-        log.info("seeded the store with %d references from %s", len(references), gallery)
+        if self.store.seed(references, model_hash, str(gallery)):
+            log.info("seeded the store with %d references from %s", len(references), gallery)
 
     def register(
         self,
@@ -88,37 +123,40 @@ class Catalog:
             existed = self._check_can_add(name, replace)
             previous = self.engine.get(name)
             commit()
-            self.store.put(reference, self.model_hash, replace=replace)
+            checksum = self.store.put(reference, self.model_hash, replace=replace)
             try:
                 self.engine.add(reference)
             except BaseException:  # the store must not keep what the engine refused
                 self._restore(name, previous)
                 raise
+            self._held[name] = checksum
         checks = self.engine.self_check(reference, self_check_poses) if self_check_poses else None
         memory.release_free_heap()
         return reference, not existed, checks
 
     def remove(self, name: str, commit: Callable[[], None] = lambda: None) -> None:
-        """Delete a reference from the store and the engine; ``commit`` as for ``register``."""
+        """Delete a reference from the store and the engine; ``commit`` as for ``register``.
+        ``UnknownReference`` when the store has none of that name."""
         with self._write_lock:
             previous = self.engine.get(name)
-            if previous is None:
-                raise UnknownReference(f"no reference named '{name}'")
             commit()
             self.store.delete(name)
             try:
-                self.engine.remove(name)
+                if previous is not None:  # else another replica's, not followed yet
+                    self.engine.remove(name)
             except BaseException:
                 self._restore(name, previous)
                 raise
+            self._held.pop(name, None)
         memory.release_free_heap()
 
     def _restore(self, name: str, previous: Reference | None) -> None:
         """Undo a store write the engine could not follow: the store keeps what it had."""
         if previous is None:
             self.store.delete(name)
+            self._held.pop(name, None)
         else:
-            self.store.put(previous, self.model_hash, replace=True)
+            self._held[name] = self.store.put(previous, self.model_hash, replace=True)
 
     def _check_can_add(self, name: str, replace: bool) -> bool:
         """Whether ``name`` exists; raises if it may not be added."""

@@ -1,54 +1,82 @@
-"""The registered references, durable: one SQLite file under ``settings.gallery.data_dir``.
+"""The registered references, durable: one interface, two backends.
 
-One row a reference: its arrays as little-endian blobs (dtype and shape beside them), its
-scale, a sha256 of all of that (checked on every load), the hash of the ONNX model its mapped
-coordinates were computed with, and when it was registered. Every write is one transaction;
-the journal is WAL with ``synchronous=FULL``, so an acknowledged write survives a power cut.
-A connection is opened per operation, so the store is safe to use from any thread.
+``open_store(settings.gallery)`` gives the embedded default, one SQLite file in ``data_dir``
+(``service.gallery.sqlite_store``), or, when ``url`` is a ``postgresql://`` URL, a PostgreSQL
+database that several replicas share (``service.gallery.postgres_store``). Both hold the same
+tables, at schema version ``SCHEMA_VERSION``; an older database is migrated on start-up, in
+one transaction, and a newer one is refused:
+
+- ``reference``: one row a reference (``service.gallery.encoding``: its arrays, its other
+  fields as JSON and a sha256 of all of it, checked on every load), the hash of the ONNX model
+  that computed it, and when it was registered;
+- ``meta``: the schema version, what the store was seeded from;
+- ``gallery_version``: one number that every write raises. A replica that sees it move reads
+  the stored checksums and loads what differs from what it holds (``catalog.Catalog.sync``).
+
+Every write is one transaction that raises the version first, which makes writers take turns
+(in PostgreSQL across replicas too), so the seed and the checks in a write see every write
+committed before it.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
-import sqlite3
+import threading
+from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from pathlib import Path
+from functools import cached_property
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from service.engine.reference import Reference
 from service.errors import ReferenceExists, UnknownReference
+from service.gallery import encoding
+from service.gallery.encoding import Row, StoreCorrupted
 
-FILENAME = "gallery.sqlite3"
-SCHEMA_VERSION = "1"
-ARRAYS = ("points", "mapped", "view_grids")  # the Reference fields stored as blobs
+if TYPE_CHECKING:
+    from collections.abc import Callable
 
-SCHEMA = """
-CREATE TABLE IF NOT EXISTS meta (
+    from service.settings import GallerySettings
+
+__all__ = ["GalleryStore", "StoreCorrupted", "StoreIncompatible", "StoredReference", "open_store"]
+
+SCHEMA_VERSION = "2"
+SEEDED_KEY = "seeded_from"  # meta: the gallery file the store was seeded from, once
+
+META_TABLE = """
+CREATE TABLE meta (
     key   TEXT PRIMARY KEY,
     value TEXT NOT NULL
-);
-CREATE TABLE IF NOT EXISTS reference (
+)"""
+REFERENCE_TABLE = """
+CREATE TABLE reference (
     name        TEXT PRIMARY KEY,
-    num_points  INTEGER NOT NULL,
-    scale       REAL NOT NULL,
-    points      BLOB NOT NULL,
-    mapped      BLOB NOT NULL,
-    view_grids  BLOB NOT NULL,
-    layout      TEXT NOT NULL,  -- JSON: {"points": {"dtype": "<f4", "shape": [N, 3]}, ...}
-    sha256      TEXT NOT NULL,  -- of the arrays' layout and bytes and the scale
-    model_hash  TEXT NOT NULL,  -- sha256 of the ONNX file that computed "mapped"
+    arrays      {blob} NOT NULL,  -- the array fields' little-endian bytes, one after another
+    layout      TEXT NOT NULL,  -- JSON: [{{"field": "points", "dtype": "<f4", "shape": [N, 3]}}]
+    extras      TEXT NOT NULL,  -- JSON: the other fields, e.g. {{"scale": 0.12}}
+    sha256      TEXT NOT NULL,  -- of the name, layout, extras and arrays
+    model_hash  TEXT NOT NULL,  -- sha256 of the ONNX file that computed the mapped fields
     created_at  TEXT NOT NULL   -- ISO 8601, UTC
-);
-"""
-
-
-class StoreCorrupted(RuntimeError):
-    """A stored reference whose checksum does not match its data."""
+)"""
+VERSION_TABLE = """
+CREATE TABLE gallery_version (
+    id      INTEGER PRIMARY KEY CHECK (id = 1),
+    version BIGINT NOT NULL  -- raised by every write
+)"""
+COLUMNS = "name, arrays, layout, extras, sha256, model_hash, created_at"
+INSERT = f"INSERT INTO reference ({COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?)"
+UPSERT = (
+    f"{INSERT} ON CONFLICT (name) DO UPDATE SET arrays = excluded.arrays,"
+    " layout = excluded.layout, extras = excluded.extras, sha256 = excluded.sha256,"
+    " model_hash = excluded.model_hash, created_at = excluded.created_at"
+)
+SET_META = (
+    "INSERT INTO meta (key, value) VALUES (?, ?)"
+    " ON CONFLICT (key) DO UPDATE SET value = excluded.value"
+)
 
 
 class StoreIncompatible(RuntimeError):
@@ -57,80 +85,206 @@ class StoreIncompatible(RuntimeError):
 
 @dataclass(frozen=True)
 class StoredReference:
-    reference: Reference
+    values: dict[str, Any]  # every stored field, the name included
+    sha256: str  # of the stored row: what a replica compares to know it holds the same
     model_hash: str
     created_at: str
 
+    @property
+    def name(self) -> str:
+        return self.values["name"]
 
-class GalleryStore:
-    def __init__(self, path: str | Path):
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            with self._connect() as conn:
-                self._check_version(conn)  # before writing anything to it
-                conn.execute("PRAGMA journal_mode=WAL")
-                with conn:
-                    conn.executescript(SCHEMA)
-                    conn.execute(
-                        "INSERT OR IGNORE INTO meta (key, value) VALUES ('schema_version', ?)",
-                        (SCHEMA_VERSION,),
-                    )
-        except sqlite3.DatabaseError as error:  # not a database, or a damaged one
-            raise StoreIncompatible(f"{self.path} is not a usable SQLite file: {error}") from error
+    @property
+    def points(self) -> np.ndarray:
+        return self.values["points"]
 
-    def _check_version(self, conn: sqlite3.Connection) -> None:
-        """A newer schema stops here: this code would misread it or write over it."""
-        has_meta = conn.execute(
-            "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'meta'"
-        ).fetchone()
-        version = self._meta(conn, "schema_version") if has_meta else None
-        if version is None or version == SCHEMA_VERSION:
+    @property
+    def missing(self) -> tuple[str, ...]:
+        """Fields the current ``Reference`` has and this row lacks (an older version wrote it)."""
+        return encoding.missing(self.values)
+
+    @cached_property
+    def reference(self) -> Reference:
+        if self.missing:
+            raise ValueError(
+                f"reference '{self.name}' was stored without {', '.join(self.missing)}: "
+                "recompute it from its points"
+            )
+        return encoding.to_reference(self.values)
+
+
+def open_store(settings: GallerySettings) -> GalleryStore:
+    """The store the settings name: PostgreSQL at ``url``, else SQLite in ``data_dir``."""
+    if settings.url:
+        from service.gallery.postgres_store import PostgresStore
+
+        return PostgresStore(settings.url, pool_size=settings.pool_size, listen=settings.listen)
+    from service.gallery.sqlite_store import SQLiteStore
+
+    return SQLiteStore.in_dir(settings.data_dir)
+
+
+class GalleryStore(ABC):
+    """Reads and writes in SQL both backends speak (``?`` placeholders); the backends add the
+    connection, the transaction, and how a replica hears of another's change."""
+
+    blob_type = "BLOB"  # the column type of raw bytes
+    duplicate_errors: tuple[type[Exception], ...] = ()  # what the driver raises for a taken name
+
+    def __init__(self, where: str):
+        self.where = where  # for messages; never a password
+        self._schema_ready = False
+        self._schema_lock = threading.Lock()
+
+    # --- what a backend provides ---------------------------------------------------------
+
+    @abstractmethod
+    def _transaction(self, write: bool) -> AbstractContextManager[Any]:
+        """A connection in one transaction, committed on exit and rolled back on an error;
+        ``StoreUnavailable`` when the database cannot be reached."""
+
+    @abstractmethod
+    def _has_table(self, conn: Any, table: str) -> bool: ...
+
+    def _execute(self, conn: Any, sql: str, params: tuple = ()) -> Any:
+        return conn.execute(sql, params)
+
+    def _lock_schema(self, conn: Any) -> None:  # noqa: B027 - a hook, empty by default
+        """Make replicas that start together set the schema up one after the other."""
+
+    def _announce(self, conn: Any, version: int) -> None:  # noqa: B027 - a hook
+        """Tell other replicas, on commit, that the store changed."""
+
+    def _migrations(self) -> dict[int, Callable[[Any], None]]:
+        """Schema version -> the function that takes a database from it to the next one."""
+        return {}
+
+    def wait_for_change(self, timeout: float) -> None:
+        """Return when another replica may have changed the store, or after ``timeout`` s."""
+        threading.Event().wait(timeout)
+
+    def close(self) -> None:  # noqa: B027 - a hook
+        """Let go of connections (a no-op where there are none to keep)."""
+
+    # --- the schema ----------------------------------------------------------------------
+
+    def check(self) -> None:
+        """Reach the database and bring its schema to this version (once): ``StoreIncompatible``
+        for one this code cannot use, ``StoreUnavailable`` while it cannot be reached."""
+        if self._schema_ready:
+            return
+        with self._schema_lock:
+            if self._schema_ready:
+                return
+            with self._transaction(write=True) as conn:
+                self._lock_schema(conn)
+                self._set_up_schema(conn)
+            self._schema_ready = True
+
+    def _set_up_schema(self, conn: Any) -> None:
+        version = self._schema_version(conn)
+        if version is None:
+            self._create_tables(conn, (META_TABLE, REFERENCE_TABLE, VERSION_TABLE))
+            self._execute(conn, SET_META, ("schema_version", SCHEMA_VERSION))
+            return
+        if version == SCHEMA_VERSION:
             return
         if not version.isdigit() or int(version) > int(SCHEMA_VERSION):
             raise StoreIncompatible(
-                f"{self.path} has gallery schema version {version}, newer than this service's "
-                f"{SCHEMA_VERSION}: run the service version that wrote it, or move the file "
-                "away to start a new gallery (docs/operations.md)"
+                f"{self.where} has gallery schema version {version}, newer than this service's "
+                f"{SCHEMA_VERSION}: run the service version that wrote it, or start on a new "
+                "gallery (docs/operations.md)"
             )
-        raise StoreIncompatible(  # older: no migration exists yet (version 1 is the first)
-            f"{self.path} has gallery schema version {version}, older than this service's "
-            f"{SCHEMA_VERSION}, and no migration exists: rebuild it (docs/operations.md)"
-        )
+        migrations = self._migrations()
+        for step in range(int(version), int(SCHEMA_VERSION)):
+            if step not in migrations:
+                raise StoreIncompatible(
+                    f"{self.where} has gallery schema version {version}, and no migration "
+                    f"exists from version {step}: rebuild it (docs/operations.md)"
+                )
+            migrations[step](conn)
+        self._execute(conn, SET_META, ("schema_version", SCHEMA_VERSION))
 
-    @classmethod
-    def in_dir(cls, data_dir: str | Path) -> GalleryStore:
-        return cls(Path(data_dir) / FILENAME)
+    def _schema_version(self, conn: Any) -> str | None:
+        if not self._has_table(conn, "meta"):
+            return None
+        return self._meta(conn, "schema_version")
 
-    # Reads
+    def _create_tables(self, conn: Any, tables: Iterable[str]) -> None:
+        for table in tables:
+            self._execute(conn, table.format(blob=self.blob_type))
+        if VERSION_TABLE in tables:
+            self._execute(conn, "INSERT INTO gallery_version (id, version) VALUES (1, 0)")
+
+    # --- reads ---------------------------------------------------------------------------
+
+    @contextmanager
+    def _reading(self) -> Iterator[Any]:
+        self.check()
+        with self._transaction(write=False) as conn:
+            yield conn
+
+    def version(self) -> int:
+        """The number every write raises."""
+        with self._reading() as conn:
+            return self._execute(conn, "SELECT version FROM gallery_version").fetchone()[0]
+
+    def checksums(self) -> dict[str, str]:
+        """Each stored reference's row checksum, by name: what differs from a snapshot."""
+        with self._reading() as conn:
+            return dict(self._execute(conn, "SELECT name, sha256 FROM reference").fetchall())
+
+    def load_records(self, names: Iterable[str] | None = None) -> list[StoredReference]:
+        """Every reference (or those of ``names`` that exist), by name, each checked against
+        its checksum, with the model hash it was computed with and when it was registered."""
+        select = f"SELECT {COLUMNS} FROM reference"
+        with self._reading() as conn:
+            if names is None:
+                rows = self._execute(conn, select).fetchall()
+            else:
+                rows = [
+                    row
+                    for name in names
+                    for row in self._execute(conn, f"{select} WHERE name = ?", (name,)).fetchall()
+                ]
+        return sorted((_record(row) for row in rows), key=lambda record: record.name)
+
     def load_all(self) -> list[Reference]:
         """Every reference, by name, each checked against its checksum."""
         return [record.reference for record in self.load_records()]
 
-    def load_records(self) -> list[StoredReference]:
-        """Every reference with the model hash it was computed with and when it was registered."""
-        with self._connect() as conn:
-            rows = conn.execute(
-                "SELECT name, scale, points, mapped, view_grids, layout, sha256, model_hash,"
-                " created_at FROM reference ORDER BY name"
-            ).fetchall()
-        return [_record(row) for row in rows]
-
     def count(self) -> int:
-        with self._connect() as conn:
-            return conn.execute("SELECT COUNT(*) FROM reference").fetchone()[0]
+        with self._reading() as conn:
+            return self._execute(conn, "SELECT COUNT(*) FROM reference").fetchone()[0]
 
     def is_empty(self) -> bool:
         return self.count() == 0
 
     def get_meta(self, key: str) -> str | None:
-        with self._connect() as conn:
+        with self._reading() as conn:
             return self._meta(conn, key)
 
-    # Writes: each one transaction
-    def put(self, reference: Reference, model_hash: str, replace: bool = False) -> None:
-        """Store one reference; ``ReferenceExists`` if its name is taken and not ``replace``."""
-        self.put_many([reference], model_hash, replace=replace)
+    def _meta(self, conn: Any, key: str) -> str | None:
+        row = self._execute(conn, "SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return None if row is None else row[0]
+
+    # --- writes: each one transaction ----------------------------------------------------
+
+    @contextmanager
+    def _writing(self) -> Iterator[Any]:
+        """One write transaction: the version raised first (writers take turns), then the
+        caller's statements, then the announcement, all committed together."""
+        self.check()
+        with self._transaction(write=True) as conn:
+            self._execute(conn, "UPDATE gallery_version SET version = version + 1")
+            version = self._execute(conn, "SELECT version FROM gallery_version").fetchone()[0]
+            yield conn
+            self._announce(conn, version)
+
+    def put(self, reference: Reference, model_hash: str, replace: bool = False) -> str:
+        """Store one reference; returns its row's checksum. ``ReferenceExists`` if its name is
+        taken and not ``replace``."""
+        return self.put_many([reference], model_hash, replace=replace)[reference.name]
 
     def put_many(
         self,
@@ -138,94 +292,67 @@ class GalleryStore:
         model_hash: str,
         replace: bool = False,
         meta: dict[str, str] | None = None,
-    ) -> None:
-        """Store several references and meta entries, all or none."""
-        verb = "INSERT OR REPLACE" if replace else "INSERT"
-        created_at = datetime.now(UTC).isoformat(timespec="milliseconds")
-        with self._connect() as conn, conn:
-            for reference in references:
-                try:
-                    conn.execute(
-                        f"{verb} INTO reference (name, num_points, scale, points, mapped,"
-                        " view_grids, layout, sha256, model_hash, created_at)"
-                        " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                        _row(reference, model_hash, created_at),
-                    )
-                except sqlite3.IntegrityError as error:
-                    raise ReferenceExists(
-                        f"a reference named '{reference.name}' exists: pick another name or "
-                        "pass replace=true"
-                    ) from error
+    ) -> dict[str, str]:
+        """Store several references and meta entries, all or none; their checksums by name."""
+        rows = [encoding.encode(reference) for reference in references]
+        with self._writing() as conn:
+            self._insert(conn, rows, model_hash, replace)
             for key, value in (meta or {}).items():
-                conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (key, value))
+                self._execute(conn, SET_META, (key, value))
+        return {row.name: row.sha256 for row in rows}
+
+    def seed(self, references: list[Reference], model_hash: str, source: str) -> bool:
+        """Store the first references of a new store, once: nothing (False) if it was seeded
+        before or holds references already. Replicas that start together seed it once."""
+        rows = [encoding.encode(reference) for reference in references]
+        with self._writing() as conn:
+            if self._meta(conn, SEEDED_KEY) is not None:
+                return False
+            empty = self._execute(conn, "SELECT COUNT(*) FROM reference").fetchone()[0] == 0
+            if empty:  # registered before seeding existed: never seed over it
+                self._insert(conn, rows, model_hash, replace=False)
+            self._execute(conn, SET_META, (SEEDED_KEY, source if empty else ""))
+        return empty
+
+    def rewrite(self, reference: Reference, model_hash: str, was: str) -> str | None:
+        """Replace a row recomputed from its points, only if it still has the checksum ``was``
+        (no replica changed or deleted it meanwhile); the new checksum, or None."""
+        row = encoding.encode(reference)
+        with self._writing() as conn:
+            changed = self._execute(
+                conn,
+                "UPDATE reference SET arrays = ?, layout = ?, extras = ?, sha256 = ?,"
+                " model_hash = ? WHERE name = ? AND sha256 = ?",
+                (row.arrays, row.layout, row.extras, row.sha256, model_hash, row.name, was),
+            ).rowcount
+        return row.sha256 if changed else None
 
     def delete(self, name: str) -> None:
         """Remove one reference; ``UnknownReference`` if there is none of that name."""
-        with self._connect() as conn, conn:
-            deleted = conn.execute("DELETE FROM reference WHERE name = ?", (name,)).rowcount
-        if not deleted:
-            raise UnknownReference(f"no reference named '{name}'")
+        with self._writing() as conn:
+            deleted = self._execute(conn, "DELETE FROM reference WHERE name = ?", (name,)).rowcount
+            if not deleted:
+                raise UnknownReference(f"no reference named '{name}'")
 
     def set_meta(self, key: str, value: str) -> None:
-        with self._connect() as conn, conn:
-            conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (key, value))
+        with self._writing() as conn:
+            self._execute(conn, SET_META, (key, value))
 
-    @contextmanager
-    def _connect(self) -> Iterator[sqlite3.Connection]:
-        conn = sqlite3.connect(self.path, timeout=30.0)
-        try:
-            conn.execute("PRAGMA synchronous=FULL")
-            yield conn
-        finally:
-            conn.close()
-
-    @staticmethod
-    def _meta(conn: sqlite3.Connection, key: str) -> str | None:
-        row = conn.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
-        return None if row is None else row[0]
-
-
-def checksum(arrays: dict[str, np.ndarray], scale: float) -> str:
-    """sha256 of each array's name, dtype, shape and bytes, in ``ARRAYS`` order, and the scale."""
-    digest = hashlib.sha256()
-    for name in ARRAYS:
-        array = np.ascontiguousarray(arrays[name])
-        digest.update(f"{name}|{array.dtype.str}|{array.shape}|".encode())
-        digest.update(array.tobytes())
-    digest.update(f"scale|{float(scale)!r}".encode())
-    return digest.hexdigest()
-
-
-def _row(reference: Reference, model_hash: str, created_at: str) -> tuple:
-    arrays = {name: _little_endian(getattr(reference, name)) for name in ARRAYS}
-    layout = {name: {"dtype": a.dtype.str, "shape": list(a.shape)} for name, a in arrays.items()}
-    return (
-        reference.name,
-        len(reference.points),
-        float(reference.scale),
-        *(arrays[name].tobytes() for name in ARRAYS),
-        json.dumps(layout),
-        checksum(arrays, reference.scale),
-        model_hash,
-        created_at,
-    )
+    def _insert(self, conn: Any, rows: list[Row], model_hash: str, replace: bool) -> None:
+        created_at = datetime.now(UTC).isoformat(timespec="milliseconds")
+        for row in rows:
+            values = (row.name, row.arrays, row.layout, row.extras, row.sha256)
+            try:
+                self._execute(
+                    conn, UPSERT if replace else INSERT, (*values, model_hash, created_at)
+                )
+            except self.duplicate_errors as error:
+                raise ReferenceExists(
+                    f"a reference named '{row.name}' exists: pick another name or pass replace=true"
+                ) from error
 
 
 def _record(row: tuple) -> StoredReference:
-    name, scale, *blobs, layout_json, stored_sum, model_hash, created_at = row
-    layout = json.loads(layout_json)
-    try:
-        arrays = {
-            key: np.frombuffer(blob, layout[key]["dtype"]).reshape(layout[key]["shape"]).copy()
-            for key, blob in zip(ARRAYS, blobs, strict=True)
-        }
-    except (KeyError, TypeError, ValueError) as error:
-        raise StoreCorrupted(f"reference '{name}': its arrays do not match their layout") from error
-    if checksum(arrays, scale) != stored_sum:
-        raise StoreCorrupted(f"reference '{name}': checksum mismatch, the stored data is damaged")
-    return StoredReference(Reference(name=name, scale=scale, **arrays), model_hash, created_at)
-
-
-def _little_endian(array: np.ndarray) -> np.ndarray:
-    array = np.ascontiguousarray(array)
-    return array.astype(array.dtype.newbyteorder("<")) if array.dtype.byteorder == ">" else array
+    name, arrays, layout, extras, sha256, model_hash, created_at = row
+    values = encoding.decode(Row(name, bytes(arrays), layout, extras, sha256))
+    return StoredReference(values, sha256, model_hash, created_at)

@@ -39,7 +39,7 @@ async def health(
         model=ModelIdentity(path=str(mapper.path), sha256=mapper.model_hash),
         providers=mapper.providers,
         references=len(catalog.engine),
-        detail=loading.detail,
+        detail=loading.detail or loading.unreachable,
     )
 
 
@@ -51,10 +51,11 @@ async def live() -> Live:
 @router.get(
     "/v2/health/ready",
     response_model=Ready,
-    summary="The model and the gallery are loaded (503 until then)",
-    responses={503: {"model": Ready, "description": "not ready"}},
+    summary="The model and the gallery are loaded and the gallery store is reachable (else 503)",
+    responses={503: {"model": Ready, "description": "not ready, and why"}},
 )
 async def ready(response: Response, loading: LoadingDep) -> Ready:
-    if not loading.ready:
+    ready = loading.ready and loading.unreachable is None
+    if not ready:
         response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
-    return Ready(ready=loading.ready, detail=loading.detail)
+    return Ready(ready=ready, detail=loading.detail or loading.unreachable)
