@@ -1,0 +1,90 @@
+"""The catalog between the store and the engine: following another replica's changes, and
+references stored without a field this version's ``Reference`` has (an older version wrote
+them), recomputed from their points. Two catalogs on one store are two replicas."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from service.engine.engine import Engine
+from service.engine.mapping import Mapper
+from service.gallery.catalog import Catalog
+from service.settings import EngineSettings
+from tests.ledger import cloud, sha
+from tests.servers import MODEL
+
+pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
+
+
+@pytest.fixture(scope="module")
+def mapper() -> Mapper:
+    return Mapper(MODEL.path)
+
+
+def catalog_on(store, mapper: Mapper) -> Catalog:
+    catalog = Catalog(Engine(mapper, EngineSettings(view_grids=2)), store, 100)
+    catalog.load(None)
+    return catalog
+
+
+@pytest.fixture
+def replicas(backend, mapper):
+    location = backend.new()
+    stores = [location.store(), location.store()]
+    yield [catalog_on(store, mapper) for store in stores]
+    for store in stores:
+        store.close()
+
+
+def test_a_replica_follows_what_another_changes(replicas):
+    a, b = replicas
+    a.register("part", cloud(1))
+    a.register("other", cloud(2))
+    assert b.sync() == 2 and sorted(b.engine.names()) == ["other", "part"]
+    assert sha(b.engine.get("part").points) == sha(cloud(1))
+    assert b.sync() == 0  # nothing new
+    a.register("part", cloud(3), replace=True)
+    b.remove("other")
+    assert b.sync() == 1 and sha(b.engine.get("part").points) == sha(cloud(3))
+    assert a.sync() == 1 and a.engine.names() == ["part"]
+    assert a.sync() == 0 and b.sync() == 0  # each holds what the store holds
+
+
+def test_a_deletion_reaches_the_store_before_the_snapshot_does(replicas):
+    a, b = replicas
+    a.register("part", cloud(1))
+    b.remove("part")  # b has not followed yet: the store's row goes all the same
+    assert a.sync() == 1 and len(a.engine) == 0 and a.store.is_empty()
+
+
+@dataclasses.dataclass(frozen=True)
+class EarlierReference:
+    """An earlier version's ``Reference``: no view grids yet."""
+
+    name: str
+    points: np.ndarray
+    mapped: np.ndarray
+    scale: float
+
+
+def test_a_reference_without_a_field_is_recomputed(replicas, mapper):
+    a, b = replicas
+    points = cloud(4)
+    mapped = np.zeros((len(points), 2), np.float32)
+    a.store.put(EarlierReference("old", points, mapped, 1.0), a.model_hash)
+    assert b.sync() == 1  # a replica running: recomputed for itself, the row left alone
+    assert b.engine.get("old").view_grids.shape == (2, 64, 64)
+    (record,) = b.store.load_records()
+    assert record.missing == ("view_grids",)
+
+    restarted = catalog_on(a.store, mapper)  # a start: recomputed and written back
+    assert restarted.engine.get("old").view_grids.shape == (2, 64, 64)
+    (record,) = a.store.load_records()
+    assert record.missing == () and sha(record.points) == sha(points)
+    assert record.reference.scale == pytest.approx(
+        np.linalg.norm(points - points.mean(0), axis=1).max()
+    )
+    assert b.sync() == 1 and b.sync() == 0  # the rewritten row is followed once
