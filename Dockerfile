@@ -21,7 +21,8 @@
 # Settings are environment variables DPC_<GROUP>__<FIELD> (service/settings.py), e.g.
 #   docker run -e DPC_ENGINE__TOP_K=5 -e DPC_AUTH__KEYS='{"<key>": "admin"}' ...
 # The gallery (SQLite) lives in the /data volume; it is seeded from models/gallery.npz on the
-# first start and survives the container.
+# first start and survives the container. With DPC_GALLERY__URL=postgresql://... it lives in
+# PostgreSQL instead, shared by every replica (deploy/compose.yaml, deploy/k8s/).
 
 ARG PYTHON_IMAGE=python:3.11.14-slim-bookworm
 FROM ${PYTHON_IMAGE}
