@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from service.settings import MODELS_DIR, Settings
+from tests.backends import Location
 from tests.test_api import Server
 
 SAMPLE = MODELS_DIR / "sample_cloud.json"
@@ -30,7 +31,7 @@ needs_model = pytest.mark.skipif(
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    running = Server(tmp_path_factory.mktemp("data"))
+    running = Server(Location(tmp_path_factory.mktemp("data")))
     yield running
     running.stop()
 
