@@ -31,7 +31,7 @@ from service.engine.engine import Engine
 from service.engine.mapping import Mapper
 from service.engine.normalize import subsample
 from service.engine.registration import kabsch, paper_least_squares, ransac
-from service.engine.sampling import sample_surface
+from service.engine.sampling import sample_surface_faces
 from service.gallery.gallery_file import load_gallery
 from service.settings import MODELS_DIR, EngineSettings
 from training.objects import load_manifest, load_object_meshes
@@ -40,14 +40,23 @@ SOLVERS = ("paper", "kabsch", "ransac")
 NOISE = 0.01  # share of the scale, as EVALUATION.md's noisy family
 
 
-def prepare_engine(model: Path, gallery: Path, unseen_specs) -> tuple[Engine, dict]:
-    """The shipped gallery, plus every unseen object registered as a user would."""
+def prepare_engine(
+    model: Path, gallery: Path, unseen_specs, as_mesh: bool = True
+) -> tuple[Engine, dict]:
+    """The shipped gallery, plus every unseen object registered as a user would: as its mesh
+    (an STL upload), or with ``as_mesh=False`` as the 2,048-point cloud sampled on it."""
     engine = Engine(Mapper(model, use_cuda=False), EngineSettings())
     references, _ = load_gallery(gallery)
+    references = [engine.complete(reference) for reference in references]
     meshes = load_object_meshes(unseen_specs)
     for spec in unseen_specs:
-        points = sample_surface(meshes[spec.name], 2048, 0)
-        references.append(engine.make_reference(spec.name, points))
+        points, faces = sample_surface_faces(meshes[spec.name], 2048, 0)
+        mesh = meshes[spec.name] if as_mesh else None
+        references.append(
+            engine.make_reference(
+                spec.name, points, mesh=mesh, face_index=faces if as_mesh else None
+            )
+        )
     engine.load(references)
     return engine, meshes
 

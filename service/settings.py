@@ -28,21 +28,30 @@ class ModelSettings(BaseModel):
 
 class EngineSettings(BaseModel):
     network_points: int = Field(1024, ge=64)  # the observation is subsampled to this many points
-    top_k: int = Field(3, ge=1)  # candidates verified geometrically
+    top_k: int = Field(3, ge=1)  # candidates eq. (4) proposes for geometric verification
     # observed radius / reference scale of a plausible candidate (full views: 0.96-1.05,
     # one camera's view: 0.85-1.45, measured); (0, inf) turns the size check off
     size_ratio: tuple[float, float] = (0.7, 1.6)
-    hypotheses: tuple[str, ...] = ("mapped", "principal-axes")  # also: "paper"
-    ransac_iterations: int = Field(200, ge=1)
+    # observed radius / a rendered view's radius for that view to be proposed
+    view_size_ratio: tuple[float, float] = (0.8, 1.25)
+    hypotheses: tuple[str, ...] = ("views", "principal-axes", "mapped")  # also: "paper"
+    views: int = Field(100, ge=4)  # single-camera views rendered per reference
+    view_candidates: int = Field(6, ge=1)  # parts the nearest rendered views propose
+    screened: int = Field(32, ge=1)  # a candidate's hypotheses kept by the quick first look
+    ransac_iterations: int = Field(200, ge=1)  # at most; fewer once an all-inlier draw is sure
     ransac_threshold: float = Field(0.08, gt=0)  # inlier distance, share of the reference's scale
-    verify_points: int = Field(128, ge=16)  # subsample for the cheap alignment-error check
-    refine_best: int = Field(2, ge=1)  # hypotheses (of all candidates) refined with ICP
-    icp_iterations: int = Field(10, ge=1)
-    icp_points: int = Field(256, ge=16)
-    view_grids: int = Field(32, ge=1)  # augmented views per reference for the classifier
+    tolerance: float = Field(0.04, gt=0)  # fit and coverage distance, share of the scale
+    verify_points: int = Field(96, ge=16)  # observed points in the first, cheap check
+    coverage_points: int = Field(64, ge=16)  # expected-visible points in the cheap check
+    excellent: float = Field(0.9, gt=0, le=1)  # fit x coverage that ends the search early
+    refine_best: int = Field(4, ge=1)  # hypotheses refined with ICP (at most 2 a part)
+    icp_iterations: int = Field(20, ge=1)
+    icp_points: int = Field(384, ge=16)
+    view_grids: int = Field(32, ge=1)  # augmented full views per reference for eq. (4)
     partial_views: float = Field(0.0, ge=0, le=1)  # share of them seen by a single camera
     classifier_ridge: float = Field(1e-3, gt=0)
     grid_blur: float = Field(2.0, ge=0)  # Gaussian smoothing of grids before eq. (4), in bins
+    mesh_surface_points: int = Field(20000, ge=1000)  # a mesh's dense sample for its views
     seed: int = 0
 
 

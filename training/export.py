@@ -23,10 +23,11 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import torch
+from tqdm import tqdm
 
 from service.engine.engine import Engine
 from service.engine.mapping import INPUT_NAME, OUTPUT_NAME, Mapper, file_sha256
-from service.engine.sampling import sample_surface
+from service.engine.sampling import sample_surface_faces
 from service.gallery.gallery_file import save_gallery
 from service.settings import EngineSettings, GallerySettings
 from training.model import DPCMN
@@ -97,10 +98,58 @@ def code_version() -> str:
 
 
 def build_gallery(mapper: Mapper, specs, engine_settings: EngineSettings, points: int):
-    """One reference per object: its mesh sampled with seed 0, prepared by the engine."""
+    """One reference per object: its mesh sampled with seed 0, prepared by the engine as a
+    mesh upload is (views rendered on the mesh, normals of its faces)."""
     engine = Engine(mapper, engine_settings)
     meshes = load_object_meshes(specs)
-    return [engine.make_reference(s.name, sample_surface(meshes[s.name], points, 0)) for s in specs]
+    references = []
+    for spec in tqdm(specs, desc="gallery", leave=False):
+        sampled, faces = sample_surface_faces(meshes[spec.name], points, 0)
+        references.append(
+            engine.make_reference(spec.name, sampled, mesh=meshes[spec.name], face_index=faces)
+        )
+    return references
+
+
+def write_gallery(out: Path, mapper: Mapper, manifest_objects: Path | None, split: str) -> dict:
+    """Build and write ``gallery.npz``; returns the manifest's entry for it."""
+    specs = load_manifest(manifest_objects, split=split)
+    engine_settings, gallery_settings = EngineSettings(), GallerySettings()
+    references = build_gallery(mapper, specs, engine_settings, gallery_settings.reference_points)
+    gallery_meta = {
+        "model_sha256": mapper.model_hash,
+        "reference_points": gallery_settings.reference_points,
+        "reference_seed": 0,
+        "view_grids": engine_settings.view_grids,
+        "views": engine_settings.views,
+        "split": split,
+    }
+    path = out / "gallery.npz"
+    save_gallery(path, references, gallery_meta)
+    print(f"gallery {path}: {len(references)} references")
+    return gallery_meta | {"references": [r.name for r in references]}
+
+
+def files_entry(*paths: Path) -> dict:
+    return {p.name: {"sha256": file_sha256(p), "bytes": p.stat().st_size} for p in paths}
+
+
+def gallery_only(out: Path, manifest_objects: Path | None, split: str) -> None:
+    """Rebuild ``gallery.npz`` for the model already in ``out`` (after the engine's reference
+    changed) and update its entries in ``manifest.json``; the model and its record stay."""
+    began = time.perf_counter()
+    onnx_path = out / "dpc_mn.onnx"
+    manifest_path = out / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    mapper = Mapper(onnx_path, use_cuda=False)
+    if manifest["files"][onnx_path.name]["sha256"] != mapper.model_hash:
+        raise SystemExit(f"{onnx_path} does not match {manifest_path}: export the model again")
+    manifest["gallery"] = write_gallery(out, mapper, manifest_objects, split)
+    manifest["files"].update(files_entry(out / "gallery.npz"))
+    manifest["gallery_code_version"] = code_version()
+    manifest["gallery_seconds"] = round(time.perf_counter() - began, 1)
+    manifest_path.write_text(json.dumps(manifest, indent=2) + "\n")
+    print(f"manifest {manifest_path}")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -109,7 +158,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=Path("models"))
     parser.add_argument("--manifest", type=Path, default=None, help="objects (default: ours)")
     parser.add_argument("--split", default="seen", help="which objects form the gallery")
+    parser.add_argument(
+        "--gallery-only",
+        action="store_true",
+        help="rebuild gallery.npz for the model already in --out (no checkpoint needed)",
+    )
     args = parser.parse_args(argv)
+    if args.gallery_only:
+        gallery_only(args.out, args.manifest, args.split)
+        return
 
     began = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -122,33 +179,17 @@ def main(argv: list[str] | None = None) -> None:
     print(f"ONNX export {onnx_path}: matches PyTorch within {parity:.2e}")
 
     mapper = Mapper(onnx_path, use_cuda=False)
-    specs = load_manifest(args.manifest, split=args.split)
-    engine_settings, gallery_settings = EngineSettings(), GallerySettings()
-    references = build_gallery(mapper, specs, engine_settings, gallery_settings.reference_points)
-    gallery_meta = {
-        "model_sha256": mapper.model_hash,
-        "reference_points": gallery_settings.reference_points,
-        "reference_seed": 0,
-        "view_grids": engine_settings.view_grids,
-        "split": args.split,
-    }
-    gallery_path = args.out / "gallery.npz"
-    save_gallery(gallery_path, references, gallery_meta)
-    print(f"gallery {gallery_path}: {len(references)} references")
-
+    gallery = write_gallery(args.out, mapper, args.manifest, args.split)
     manifest = {
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "code_version": code_version(),
-        "files": {
-            p.name: {"sha256": file_sha256(p), "bytes": p.stat().st_size}
-            for p in (onnx_path, gallery_path)
-        },
+        "files": files_entry(onnx_path, args.out / "gallery.npz"),
         "onnx": {"opset": OPSET, "parity_max_abs_error": parity, "sizes": list(PARITY_SIZES)},
         "input": {"canonical": config.data.canonical, "centred": True, "scaled_by": "radius"},
         "training": checkpoint["config"],
         "trained_epochs": checkpoint["epoch"] + 1,
         "objects": checkpoint.get("objects", []),
-        "gallery": gallery_meta | {"references": [r.name for r in references]},
+        "gallery": gallery,
         "export_seconds": round(time.perf_counter() - began, 1),
     }
     (args.out / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")

@@ -10,34 +10,50 @@ from __future__ import annotations
 
 import io
 import re
+from dataclasses import dataclass
 from pathlib import PurePath
 
 import numpy as np
 import trimesh
 
-from service.engine.sampling import MeshError, load_mesh, sample_surface
+from service.engine.sampling import MeshError, load_mesh, sample_surface_faces
 from service.errors import InvalidPoints
 
 SUFFIXES = (".stl", ".obj", ".ply", ".pcd", ".npy")
 NPY_MAGIC = b"\x93NUMPY"
 
 
+@dataclass(frozen=True)
+class Upload:
+    """What an uploaded file gives a registration: points, and the mesh they were sampled on."""
+
+    points: np.ndarray  # (N, 3), not yet validated
+    mesh: trimesh.Trimesh | None = None
+    face_index: np.ndarray | None = None  # the face each point was sampled on
+
+
 def read_points(data: bytes, filename: str | None, mesh_points: int, seed: int = 0) -> np.ndarray:
     """The points an uploaded file holds: (N, 3), a mesh sampled to ``mesh_points`` points."""
+    return read_upload(data, filename, mesh_points, seed).points
+
+
+def read_upload(data: bytes, filename: str | None, mesh_points: int, seed: int = 0) -> Upload:
+    """An uploaded file's points, with its mesh when it is one."""
     if not data:
         raise InvalidPoints("the uploaded file is empty")
     kind = file_kind(data, filename)
     if kind == ".npy":
-        return read_npy(data)
+        return Upload(read_npy(data))
     if kind == ".pcd":
-        return read_pcd(data)
+        return Upload(read_pcd(data))
     if kind == ".ply" and not ply_has_faces(data):
-        return read_ply_cloud(data)
+        return Upload(read_ply_cloud(data))
     try:
         mesh = load_mesh(io.BytesIO(data), file_type=kind.lstrip("."))
     except MeshError as error:
         raise InvalidPoints(f"the {kind.lstrip('.').upper()} mesh is unusable: {error}") from error
-    return sample_surface(mesh, mesh_points, seed=seed)
+    points, faces = sample_surface_faces(mesh, mesh_points, seed=seed)
+    return Upload(points, mesh, faces)
 
 
 def file_kind(data: bytes, filename: str | None) -> str:

@@ -109,3 +109,24 @@ def classifier_input(grids: np.ndarray, blur: float) -> np.ndarray:
     return (
         grids.reshape(len(grids), half, POOL, half, POOL).sum(axis=(2, 4)).reshape(len(grids), -1)
     )
+
+
+VIEW_POOL = 4  # nearest-view features pool the smoothed grid 4x4 (to 16x16 = 256 values)
+
+
+def view_features(grids: np.ndarray, blur: float) -> np.ndarray:
+    """(V, 256) unit-length features of grids for matching an observation to rendered views:
+    smoothed as for eq. (4), pooled to 16x16, divided by their norm (cosine similarity).
+
+    Measured on 174 depth-camera views of 58 parts, each view matched against 100 rendered
+    views of every part: the right part was among the best 5 for 97 % and the best 10 for 99 %
+    of the views (with the size check of ``Engine``), the same as with 32x32 features, which
+    cost 4 times the memory; eq. (4)'s linear classifier fitted on the same views: 66 / 79 %.
+    """
+    grids = np.asarray(grids, dtype=np.float32).reshape(-1, GRID_SIZE, GRID_SIZE)
+    if blur > 0:
+        grids = gaussian_filter(grids, sigma=(0, blur, blur), mode="constant")
+    side = GRID_SIZE // VIEW_POOL
+    pooled = grids.reshape(len(grids), side, VIEW_POOL, side, VIEW_POOL).sum(axis=(2, 4))
+    flat = pooled.reshape(len(grids), -1)
+    return flat / np.maximum(np.linalg.norm(flat, axis=1, keepdims=True), 1e-12)

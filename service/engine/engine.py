@@ -1,9 +1,12 @@
 """The engine: recognise a registered object in a cloud and estimate its pose.
 
-``Engine.align`` is the paper's chain, one step per line: normalise -> map to 2-D
-(ONNX) -> grid -> classify -> hypothesise poses from mapped pairs and principal
-axes -> verify by the alignment error -> refine with ICP -> measure the fit.
-The gallery is an immutable snapshot swapped whole on every change, so any
+``Engine.align`` is the paper's chain, one step a block: normalise -> map to 2-D (ONNX) ->
+grid -> classify (eq. 4, and the rendered views whose grids look most alike) -> hypothesise
+poses -> verify (fit x coverage) -> refine (point-to-plane ICP) -> decide -> measure the fit.
+It runs in two passes: first the whole part (eq. 4's candidates, whole-reference hypotheses),
+which a full 360-degree cloud passes at once; then, unless that found an excellent fit, single
+views (the candidates and view hypotheses the rendered views propose), which is what a depth
+camera posts. The gallery is an immutable snapshot swapped whole on every change, so any
 number of threads may align while one registers or removes a reference.
 """
 
@@ -14,17 +17,24 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from service.engine import hypotheses as sources
 from service.engine.alignment import alignment_error
-from service.engine.classifier import LinearClassifier, classifier_input, view_gram
+from service.engine.classifier import LinearClassifier, classifier_input, view_features, view_gram
+from service.engine.distance_field import DistanceField
 from service.engine.grid import grid
-from service.engine.hypotheses import Hypothesis, hypothesise
-from service.engine.icp import icp
+from service.engine.hypotheses import Hypotheses
+from service.engine.icp import Surface, icp
 from service.engine.mapping import Mapper
 from service.engine.normalize import normalize, radius, subsample
+from service.engine.normals import estimate_normals, orient_by_views
 from service.engine.reference import Reference
+from service.engine.symmetry import Symmetry, find_symmetry
+from service.engine.verification import Occupancy, coverage, fit
+from service.engine.views import Views, render
 from service.engine.visibility import random_camera, visible_points
 from service.errors import EmptyGallery, UnknownReference
 from service.settings import EngineSettings
@@ -67,24 +77,51 @@ class Alignment:
     ambiguous: bool = False
     alternatives: list[AlternativePose] = field(default_factory=list)
     points_set_aside: int = 0  # observed points left out as support plane, strays, clutter
+    fit: float = 0.0  # share of observed points near the reference's surface at the pose
+    coverage: float = 0.0  # share of what the camera should see of it that was observed
+    runner_up: float = 0.0  # the best fit x coverage of any other part
 
 
 @dataclass(frozen=True)
 class Entry:
-    """A reference with the search trees built once at registration or load."""
+    """A reference with what queries need of it, built once at registration or load."""
 
     reference: Reference
     point_tree: cKDTree
     mapped_tree: cKDTree
-    view_features: np.ndarray  # the classifier's input for each view grid
+    view_features: np.ndarray  # eq. (4)'s input for each augmented full view
+    surface: Surface
+    views: Views
+    patch: float  # the typical spacing of its points
+    symmetry: Symmetry
+    # EXPECTED indices of the points each view sees (row K: of all points), drawn once, for
+    # coverage; repeated where a view sees fewer
+    expected: np.ndarray
 
     @classmethod
     def of(cls, reference: Reference, blur: float) -> Entry:
+        points = np.asarray(reference.points, dtype=np.float64)
+        tree = cKDTree(points)
+        frame = reference.field_frame
+        distance_field = DistanceField(frame[:3], float(frame[3]), reference.field)
+        spacing, _ = tree.query(points, k=2)
+        visible = reference.visible()
+        rng = np.random.default_rng(0)
+        expected = np.empty((len(visible) + 1, EXPECTED), dtype=np.uint16)
+        for k, seen in enumerate([*visible, np.ones(len(points), bool)]):
+            pool = np.flatnonzero(seen) if seen.any() else np.arange(len(points))
+            drawn = rng.permutation(len(pool))[:EXPECTED]
+            expected[k] = pool[np.resize(drawn, EXPECTED)]  # repeated where it sees fewer
         return cls(
             reference,
-            cKDTree(reference.points),
+            tree,
             cKDTree(reference.mapped),
             classifier_input(reference.view_grids, blur),
+            Surface.of(points, np.asarray(reference.normals, np.float64), distance_field, tree),
+            Views.of(points, visible),
+            float(np.median(spacing[:, 1])),
+            Symmetry.from_description(reference.symmetry, points.mean(axis=0)),
+            expected,
         )
 
 
@@ -94,6 +131,29 @@ class Snapshot:
     classifier: LinearClassifier | None
     scales: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per classifier row
     gram: np.ndarray | None = None  # view_gram of every entry's view features, kept by sums
+    # every rendered view of every reference, for nearest-view proposals
+    view_keys: np.ndarray = field(default_factory=lambda: np.zeros((0, 256), np.float32))
+    view_owner: np.ndarray = field(default_factory=lambda: np.zeros(0, np.intp))  # its row
+    view_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.intp))
+    view_radii: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+@dataclass
+class Fit:
+    """One verified (and perhaps refined) hypothesis of one candidate."""
+
+    row: int
+    rotation: np.ndarray
+    translation: np.ndarray
+    source: str
+    view: int  # the view the camera was expected to see (-1: the whole part)
+    fit: float
+    coverage: float
+    refined: bool = False
+
+    @property
+    def score(self) -> float:
+        return self.fit * self.coverage
 
 
 class Stopwatch:
@@ -120,15 +180,64 @@ class Engine:
         self._snapshot = Snapshot({}, None)
         self._write_lock = threading.Lock()
 
-    # --- the gallery -------------------------------------------------------------
+    # --- a reference ------------------------------------------------------------------
 
-    def make_reference(self, name: str, points: np.ndarray, seed: int | None = None) -> Reference:
-        """Compute what the engine needs of a new object: mapped points, view grids, scale."""
+    def make_reference(
+        self,
+        name: str,
+        points: np.ndarray,
+        seed: int | None = None,
+        mesh: trimesh.Trimesh | None = None,
+        face_index: np.ndarray | None = None,
+    ) -> Reference:
+        """Compute what the engine needs of a new object from its points (sampled on ``mesh``'s
+        faces ``face_index``, when it came as a mesh): mapped points, view grids, scale, then
+        normals, rendered views, distance field and symmetry."""
         points = np.asarray(points, dtype=np.float32)
         mapped = self.map(points)
         rng = np.random.default_rng(self.settings.seed if seed is None else seed)
         views = [self.view_grid(points, rng) for _ in range(self.settings.view_grids)]
-        return Reference(name, points, mapped, np.stack(views), radius(points))
+        reference = Reference(name, points, mapped, np.stack(views), radius(points))
+        return self.complete(reference, mesh, face_index)
+
+    def complete(
+        self,
+        reference: Reference,
+        mesh: trimesh.Trimesh | None = None,
+        face_index: np.ndarray | None = None,
+    ) -> Reference:
+        """The reference with every derived field computed (those it lacks, or all of them
+        when a mesh is given): normals, views, distance field, symmetry."""
+        settings = self.settings
+        if mesh is None and not reference.missing:
+            return reference
+        points = np.asarray(reference.points, dtype=np.float64)
+        tree = cKDTree(points)
+        if mesh is not None:  # the views see the mesh's own surface; normals are its faces'
+            surface = np.asarray(
+                trimesh.sample.sample_surface(
+                    mesh, settings.mesh_surface_points, seed=settings.seed + 1
+                )[0]
+            )
+            visible = render(points, reference.scale, settings.views, surface, mesh.area)
+            normals = mesh.face_normals[face_index]
+        else:
+            visible = render(points, reference.scale, settings.views)
+            normals = estimate_normals(points, tree=tree)
+        views = Views.of(points, visible)
+        normals = orient_by_views(points, normals, views.directions, visible)
+        distance_field = DistanceField.of(points, reference.scale, tree=tree)
+        surface_model = Surface.of(points, normals, distance_field, tree)
+        grids = np.stack([grid(self.map(points[seen])) for seen in visible])
+        symmetry = find_symmetry(surface_model, reference.scale, np.random.default_rng(0))
+        return reference.with_(
+            normals=normals.astype(np.float32),
+            visibility=np.packbits(visible, axis=1),
+            view_features=view_features(grids, settings.grid_blur).astype(np.float16),
+            field=distance_field.nearest,
+            field_frame=np.array([*distance_field.origin, distance_field.voxel]),
+            symmetry=symmetry.describe(),
+        )
 
     def view_grid(self, points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The grid of an augmented view: a random pose, a single camera's view with
@@ -139,6 +248,8 @@ class Engine:
         keep = max(16, int(count * rng.uniform(0.1, 1.0)))
         view = points[subsample(points, keep, rng)] @ Rotation.random(random_state=rng).as_matrix()
         return grid(self.map(view))
+
+    # --- the gallery ------------------------------------------------------------------
 
     def load(self, references: list[Reference]) -> None:
         entries = {r.name: Entry.of(r, self.settings.grid_blur) for r in references}
@@ -180,8 +291,23 @@ class Engine:
                 self.settings.grid_blur,
                 gram,
             )
-        scales = np.array([entry.reference.scale for entry in entries.values()])
-        self._snapshot = Snapshot(entries, classifier, scales, gram)
+        listed = list(entries.values())
+        scales = np.array([entry.reference.scale for entry in listed])
+        counts = [len(e.views.radii) for e in listed]
+        self._snapshot = Snapshot(
+            entries,
+            classifier,
+            scales,
+            gram,
+            view_keys=np.concatenate([e.reference.view_features.astype(np.float32) for e in listed])
+            if listed
+            else np.zeros((0, 256), np.float32),
+            view_owner=np.repeat(np.arange(len(listed)), counts),
+            view_index=np.concatenate([np.arange(c) for c in counts])
+            if listed
+            else np.zeros(0, np.intp),
+            view_radii=np.concatenate([e.views.radii for e in listed]) if listed else np.zeros(0),
+        )
 
     def names(self) -> list[str]:
         return list(self._snapshot.entries)
@@ -209,7 +335,7 @@ class Engine:
         best = int(np.argmax(scores))
         return classifier.labels[best], float(scores[best])
 
-    # --- the chain ---------------------------------------------------------------
+    # --- the chain --------------------------------------------------------------------
 
     def map(self, points: np.ndarray) -> np.ndarray:
         """Normalise a cloud as training did and map it to 2-D."""
@@ -231,93 +357,134 @@ class Engine:
         if not snapshot.entries:
             raise EmptyGallery("no reference is registered: register one with POST /references")
         allowed = self._candidate_rows(snapshot, candidates)
+        chosen_sources = hypotheses or settings.hypotheses
         rng = np.random.default_rng(settings.seed)
         clock = Stopwatch()
         scene = np.asarray(points, dtype=np.float64)
+        viewpoint = None if viewpoint is None else np.asarray(viewpoint, dtype=np.float64)
 
         # 1. Normalise: subsample to the network's size (centring, scaling in map()).
         observed = scene[subsample(scene, settings.network_points, rng)]
+        size = radius(observed)
         clock.lap("normalize")
         # 2. Map every point to 2-D with the network.
         observed_mapped = self.map(observed)
         clock.lap("map")
-        # 3. Grid and classify (eq. 4) among the references of a plausible size; keep top_k.
-        scores = snapshot.classifier.scores(grid(observed_mapped))
-        allowed = self._plausible_size(snapshot, allowed, radius(scene))
-        ranked = allowed[np.argsort(-scores[allowed], kind="stable")]
-        shortlist = ranked[: top_k or settings.top_k]
+        # 3. Grid and classify (eq. 4) among the references of a plausible size.
+        observed_grid = grid(observed_mapped)
+        scores = snapshot.classifier.scores(observed_grid)
+        whole = self._plausible(snapshot.scales[allowed], size, settings.size_ratio)
+        shortlist = allowed[whole][np.argsort(-scores[allowed[whole]], kind="stable")]
+        shortlist = shortlist[: top_k or settings.top_k]
         clock.lap("classify")
 
-        verify = observed[subsample(observed, settings.verify_points, rng)]
-        refine_on = observed[subsample(observed, settings.icp_points, rng)]
+        search = Search(self, snapshot, observed, observed_mapped, viewpoint, rng, clock)
+        # 4-6. The whole part: hypotheses from the whole reference (principal axes first, the
+        # mapped pairs if those are not excellent), verified, the best refined.
+        fits: list[Fit] = []
+        for group in WHOLE_GROUPS:
+            whole = [s for s in chosen_sources if s in group]
+            best = max(fits, key=lambda f: f.score, default=None)
+            if whole and (best is None or best.score < settings.excellent):
+                fits += search.run({row: whole for row in shortlist}, refine, WHOLE_REFINED)
+        best = max(fits, key=lambda f: f.score, default=None)
+        if "views" in chosen_sources and (best is None or best.score < settings.excellent):
+            # 3b-6. Single views: the parts whose rendered views' grids look most like the
+            # observation's, and eq. (4)'s; hypotheses from every rendered view of each.
+            rows = [*self._nearest_views(snapshot, observed_grid, size, allowed, top_k)]
+            rows += [row for row in shortlist if row not in rows]
+            clock.lap("classify")
+            planned = {
+                row: ["views"] + (["principal-axes"] if row not in shortlist else [])
+                for row in rows
+            }
+            fits += search.run(planned, refine, settings.refine_best)
+        if not fits:  # nothing of a plausible size: no search over the wrong sizes
+            return self._no_match_by_size(snapshot, allowed, size, scores, clock)
+
+        # 7. Decide: the best fit x coverage over every candidate and hypothesis.
+        fits.sort(key=lambda f: -f.score)
+        winner = fits[0]
         labels = snapshot.classifier.labels
-        fits: list[tuple[float, str, Hypothesis]] = []
-        for row in shortlist:
-            entry = snapshot.entries[labels[row]]
-            # 4. Hypothesise poses: mapped pairs (RANSAC), principal axes, the paper's solver.
-            poses = hypothesise(
-                hypotheses or settings.hypotheses,
-                observed,
-                observed_mapped,
-                entry.reference.points,
-                entry.mapped_tree,
-                settings.ransac_threshold * entry.reference.scale,
-                settings.ransac_iterations,
-                rng,
-            )
-            clock.lap("hypothesise")
-            # 5. Verify each cheaply: the alignment error on a small subsample.
-            for pose in poses:
-                error = alignment_error(verify, entry.point_tree, pose.rotation, pose.translation)
-                fits.append((error, labels[row], pose))
-            clock.lap("verify")
+        label = labels[winner.row]
+        entry = snapshot.entries[label]
+        rotation, translation = entry.symmetry.canonical(winner.rotation, winner.translation)
+        runner_up = max((f.score for f in fits if f.row != winner.row), default=0.0)
+        clock.lap("decide")
 
-        # 6. Refine the best few hypotheses of all candidates with ICP; the best fit wins.
-        fits.sort(key=lambda fit: fit[0])
-        if refine:
-            for index, (_, label, pose) in enumerate(fits[: settings.refine_best]):
-                entry = snapshot.entries[label]
-                rotation, translation = icp(
-                    refine_on,
-                    entry.reference.points,
-                    entry.point_tree,
-                    pose.rotation,
-                    pose.translation,
-                    settings.icp_iterations,
-                )
-                error = alignment_error(verify, entry.point_tree, rotation, translation)
-                fits[index] = (error, label, Hypothesis(rotation, translation, pose.source))
-            fits.sort(key=lambda fit: fit[0])
-        clock.lap("refine")
-        best = fits[0]
-
-        # 7. Measure the fit of the winner on every observed point.
-        _, label, winner = best
-        winner_entry = snapshot.entries[label]
-        error = alignment_error(scene, winner_entry.point_tree, winner.rotation, winner.translation)
+        # 8. Measure the fit of the winner on every observed point.
+        error = alignment_error(scene, entry.point_tree, rotation, translation)
         clock.lap("measure")
-        scale = winner_entry.reference.scale
-        per_label: dict[str, CandidateFit] = {}
-        for fit_error, fit_label, hypothesis in fits:  # sorted: the first per label is its best
-            if fit_label not in per_label:
-                per_label[fit_label] = CandidateFit(
-                    fit_label,
-                    float(scores[labels.index(fit_label)]),
-                    fit_error,
-                    fit_error / snapshot.entries[fit_label].reference.scale,
-                    hypothesis.source,
-                )
         return Alignment(
             label=label,
-            score=float(scores[labels.index(label)]),
-            rotation=winner.rotation,
-            translation=winner.translation,
+            score=float(scores[winner.row]),
+            rotation=rotation,
+            translation=translation,
             alignment_error=error,
-            alignment_error_normalized=error / scale,
+            alignment_error_normalized=error / entry.reference.scale,
             hypothesis=winner.source,
-            candidates=list(per_label.values()),
+            candidates=search.candidate_fits(fits, scores),
             timings_ms=clock.total(),
+            fit=winner.fit,
+            coverage=winner.coverage,
+            runner_up=runner_up,
         )
+
+    def _nearest_views(
+        self,
+        snapshot: Snapshot,
+        observed_grid: np.ndarray,
+        size: float,
+        allowed: np.ndarray,
+        top_k: int | None,
+    ) -> list[int]:
+        """The rows of the parts whose rendered views look most like the observation (cosine
+        of the grids' features, among views of a plausible size), best first."""
+        settings = self.settings
+        similarity = snapshot.view_keys @ view_features(observed_grid, settings.grid_blur)[0]
+        low, high = settings.view_size_ratio
+        ratio = size / np.maximum(snapshot.view_radii, 1e-12)
+        usable = (ratio >= low) & (ratio <= high) & np.isin(snapshot.view_owner, allowed)
+        similarity = np.where(usable, similarity, -np.inf)
+        starts = np.flatnonzero(np.diff(snapshot.view_owner, prepend=-1))  # rows are in blocks
+        best_per_row = np.maximum.reduceat(similarity, starts)
+        count = top_k or settings.view_candidates
+        return [int(r) for r in np.argsort(-best_per_row)[:count] if np.isfinite(best_per_row[r])]
+
+    def _no_match_by_size(self, snapshot, allowed, size, scores, clock) -> Alignment:
+        """The answer when no reference could give an observation of this size."""
+        scales = snapshot.scales[allowed]
+        ratio = size / scales
+        nearest = int(np.argmin(np.abs(np.log(ratio))))
+        factor = float(ratio[nearest])
+        row = int(allowed[nearest])
+        label = snapshot.classifier.labels[row]
+        reasons = [size_reason(factor)]
+        return Alignment(
+            label=label,
+            score=float(scores[row]),
+            rotation=np.eye(3),
+            translation=np.zeros(3),
+            alignment_error=float("nan"),
+            alignment_error_normalized=float("nan"),
+            hypothesis="none",
+            candidates=[],
+            timings_ms=clock.total(),
+            verdict="no_match",
+            confidence=0.0,
+            reasons=reasons,
+        )
+
+    @staticmethod
+    def _plausible(scales: np.ndarray, size: float, ratio: tuple[float, float]) -> np.ndarray:
+        """Which references' scales could give an observation of this radius.
+
+        The grid is scale-free, but a sensor measures sizes: a full view's radius is the
+        reference's scale within a few per cent, a single camera's view 0.85-1.45 of it
+        (measured on the evaluation's cases), so a size far outside that is another part.
+        """
+        low, high = ratio
+        return (size >= low * scales) & (size <= high * scales)
 
     @staticmethod
     def _candidate_rows(snapshot: Snapshot, candidates: list[str] | None) -> np.ndarray:
@@ -328,18 +495,6 @@ class Engine:
         if unknown:
             raise UnknownReference(f"unknown candidate reference(s): {', '.join(unknown)}")
         return np.array(sorted({labels.index(name) for name in candidates}))
-
-    def _plausible_size(self, snapshot: Snapshot, rows: np.ndarray, observed: float) -> np.ndarray:
-        """The rows whose scale could give an observation of this radius (all if none can).
-
-        The grid is scale-free, but a sensor measures sizes: a full view's radius is the
-        reference's scale within a few per cent, a single camera's view 0.85-1.45 of it
-        (measured on the evaluation's cases), so a size far outside that is another part.
-        """
-        low, high = self.settings.size_ratio
-        scales = snapshot.scales[rows]
-        plausible = rows[(observed >= low * scales) & (observed <= high * scales)]
-        return plausible if len(plausible) else rows
 
     def self_check(self, reference: Reference, poses: int = 3) -> list[dict]:
         """Align the reference against a few random poses of itself, as an operator would."""
@@ -360,3 +515,214 @@ class Engine:
                 }
             )
         return checks
+
+
+def size_reason(factor: float) -> str:
+    """Why an observation of ``factor`` times the nearest reference's size matches nothing."""
+    for unit_factor, unit in ((1000.0, "millimetres"), (100.0, "centimetres")):
+        if 0.5 * unit_factor <= factor <= 2 * unit_factor:
+            return (
+                f"the cloud is about {factor:,.0f} times the size of the nearest reference: "
+                f"it is probably in {unit} while the references are in metres; send metres"
+            )
+        if 0.5 / unit_factor <= factor <= 2 / unit_factor:
+            return (
+                f"the cloud is about 1/{1 / factor:,.0f} of the size of the nearest reference: "
+                f"the references are probably in {unit}; send the cloud in their units"
+            )
+    return (
+        f"no registered part has this size: the cloud's radius is {factor:.2g} times the "
+        "nearest reference's scale"
+    )
+
+
+EXPECTED = 128  # expected-visible points drawn per view for coverage
+SPACINGS = 1.5  # the occupancy's voxel is at least this many observed-point spacings
+QUICK_POINTS = 24  # observed and expected points of the quick look that screens hypotheses
+WHOLE_REFINED = 2  # hypotheses refined in each whole-part pass
+WHOLE_GROUPS = (("principal-axes",), ("mapped", "paper"))  # the whole-part passes, in order
+ENOUGH_BEHIND = 0.8  # a hypothesis this far below an excellent refined one is not refined
+FAR_BELOW = 0.5  # nor one below this share of the best hypothesis before refining
+
+
+class Search:
+    """Steps 4-6 for one query: hypothesise, verify, refine, for a set of candidates."""
+
+    def __init__(self, engine, snapshot, observed, observed_mapped, viewpoint, rng, clock):
+        settings = engine.settings
+        self.settings = settings
+        self.snapshot = snapshot
+        self.labels = snapshot.classifier.labels
+        self.observed = observed
+        self.observed_mapped = observed_mapped
+        self.viewpoint = viewpoint
+        self.rng = rng
+        self.clock = clock
+        self.quick = observed[subsample(observed, QUICK_POINTS, rng)]
+        self.cheap = observed[subsample(observed, settings.verify_points, rng)]
+        self.refine_on = observed[subsample(observed, settings.icp_points, rng)]
+        # "is an observed point near here", at the tolerance or the observation's own spacing
+        spacing, _ = cKDTree(observed).query(self.cheap, k=2)
+        voxel = max(
+            settings.tolerance * radius(observed), SPACINGS * float(np.median(spacing[:, 1]))
+        )
+        self.occupancy = Occupancy(observed, voxel)
+
+    def run(self, planned: dict[int, list[str]], refine: bool, budget: int) -> list[Fit]:
+        """Verified fits of every candidate row from its planned sources; the best ``budget``
+        refined. Returns each row's best fit, and every refined one."""
+        settings = self.settings
+        fits: list[Fit] = []
+        for row, chosen in planned.items():
+            entry = self.snapshot.entries[self.labels[row]]
+            made = self.hypothesise(entry, chosen)
+            self.clock.lap("hypothesise")
+            if len(made) > settings.screened:  # a quick look first, on a few points
+                made = made.take(self.screen(entry, made)[: settings.screened])
+            if len(made):
+                fits += self.verify(row, entry, made)
+            self.clock.lap("verify")
+        if not fits:
+            return []
+        fits.sort(key=lambda f: -f.score)
+        if refine:
+            self.refine_best_first(fits, budget)
+            self.clock.lap("refine")
+        best: dict[int, Fit] = {}
+        for candidate in sorted(fits, key=lambda f: -f.score):
+            best.setdefault(candidate.row, candidate)
+        return list(best.values()) + [f for f in fits if f.refined and best[f.row] is not f]
+
+    def screen(self, entry: Entry, made: Hypotheses) -> np.ndarray:
+        """Hypotheses ordered by a quick fit x coverage on a few points, best first."""
+        tolerance = self.settings.tolerance * entry.reference.scale
+        fits_ = fit(
+            entry.surface,
+            self.quick,
+            made.rotations,
+            made.translations,
+            tolerance,
+            entry.patch,
+            corrected=False,
+        )
+        expected = self.expected(entry, made, QUICK_POINTS)
+        covered = coverage(expected, made.rotations, made.translations, self.occupancy)
+        return np.argsort(-(fits_ * covered), kind="stable")
+
+    def refine_best_first(self, fits: list[Fit], budget: int) -> None:
+        """Refine the best ``budget`` hypotheses (at most two a candidate), best first, leaving
+        out those far below the best before refining; stop once one is excellent and the next
+        looks clearly worse than it."""
+        settings = self.settings
+        per_row: dict[int, int] = {}
+        refined: list[Fit] = []
+        floor = FAR_BELOW * fits[0].score  # sorted, best first
+        for candidate in fits:
+            if len(refined) == budget or candidate.score < floor:
+                break
+            if per_row.get(candidate.row, 0) == 2:
+                continue
+            best = max((f.score for f in refined), default=0.0)
+            if best >= settings.excellent and candidate.score < ENOUGH_BEHIND * best:
+                break
+            per_row[candidate.row] = per_row.get(candidate.row, 0) + 1
+            self.refine(candidate)
+            refined.append(candidate)
+
+    def hypothesise(self, entry: Entry, chosen: list[str]) -> Hypotheses:
+        settings = self.settings
+        reference = entry.reference
+        made = []
+        if "views" in chosen:
+            every = np.arange(len(entry.views.radii))
+            made.append(sources.from_views(self.observed, entry.views, every, self.viewpoint))
+        if "principal-axes" in chosen:
+            made.append(sources.from_principal_axes(self.observed, entry.surface.points))
+        if "mapped" in chosen or "paper" in chosen:
+            made.append(
+                sources.from_mapped_pairs(
+                    tuple(chosen),
+                    self.observed,
+                    self.observed_mapped,
+                    entry.surface.points,
+                    entry.mapped_tree,
+                    settings.ransac_threshold * reference.scale,
+                    settings.ransac_iterations,
+                    self.rng,
+                )
+            )
+        return Hypotheses.join(made)
+
+    def expected(self, entry: Entry, made: Hypotheses, count: int) -> np.ndarray:
+        """(H, count, 3) reference points each hypothesis expects the camera to see: of the
+        view the viewpoint implies at its pose, else of its own view (-1: all points)."""
+        views = made.views
+        if self.viewpoint is not None:
+            toward = self.viewpoint[None] - made.translations
+            implied = np.einsum("hij,hi->hj", made.rotations, toward)  # R^T v, model frame
+            views = np.argmax(implied @ entry.views.directions.T, axis=1)
+        return entry.surface.points[entry.expected[views, :count]]
+
+    def verify(self, row: int, entry: Entry, made: Hypotheses, count: int | None = None):
+        settings = self.settings
+        scale = entry.reference.scale
+        tolerance = settings.tolerance * scale
+        observed = self.cheap if count is None else self.refine_on
+        fits_ = fit(
+            entry.surface, observed, made.rotations, made.translations, tolerance, entry.patch
+        )
+        expected = self.expected(entry, made, count or settings.coverage_points)
+        covered = coverage(expected, made.rotations, made.translations, self.occupancy)
+        return [
+            Fit(
+                row,
+                made.rotations[h],
+                made.translations[h],
+                made.sources[h],
+                int(made.views[h]),
+                float(fits_[h]),
+                float(covered[h]),
+            )
+            for h in range(len(made))
+        ]
+
+    def refine(self, candidate: Fit) -> None:
+        """Point-to-plane ICP from the fit's pose, then verified again on more points."""
+        settings = self.settings
+        entry = self.snapshot.entries[self.labels[candidate.row]]
+        scale = entry.reference.scale
+        rotation, translation, _ = icp(
+            self.refine_on,
+            entry.surface,
+            candidate.rotation,
+            candidate.translation,
+            noise=0.25 * settings.tolerance * scale,
+            gate=5 * settings.tolerance * scale,
+            iterations=settings.icp_iterations,
+        )
+        made = Hypotheses(
+            rotation[None], translation[None], (candidate.source,), np.array([candidate.view])
+        )
+        (checked,) = self.verify(candidate.row, entry, made, count=EXPECTED)
+        candidate.rotation, candidate.translation = rotation, translation
+        candidate.fit, candidate.coverage, candidate.refined = checked.fit, checked.coverage, True
+
+    def candidate_fits(self, fits: list[Fit], scores: np.ndarray) -> list[CandidateFit]:
+        """One line a candidate, best first: its best pose's mean distance from the observed
+        points to the reference's surface samples (on the cheap subsample)."""
+        out: dict[int, CandidateFit] = {}
+        for candidate in sorted(fits, key=lambda f: -f.score):
+            if candidate.row in out:
+                continue
+            entry = self.snapshot.entries[self.labels[candidate.row]]
+            model = (self.cheap - candidate.translation) @ candidate.rotation
+            nearest = entry.surface.field.lookup(model)
+            error = float(np.linalg.norm(model - entry.surface.points[nearest], axis=1).mean())
+            out[candidate.row] = CandidateFit(
+                self.labels[candidate.row],
+                float(scores[candidate.row]),
+                error,
+                error / entry.reference.scale,
+                candidate.source,
+            )
+        return list(out.values())

@@ -1,41 +1,115 @@
-"""Step 5b: refine a pose with point-to-point ICP against the reference's tree.
+"""Step 5: refine a pose with robust point-to-plane ICP on the reference's distance field.
 
-Each iteration pairs every observed point with its nearest reference point at
-the current pose, drops pairs farther than ``trim`` times the median distance
-(so parts of the scene the reference does not explain pull less), and solves
-Kabsch on the rest. Stops when the mean distance improves by less than
-``tolerance`` (relative) from one iteration to the next.
+Each iteration carries the observed points into the model frame, looks up the nearest reference
+point and its normal in the distance field (O(1), no tree), and solves the linearised
+point-to-plane problem: the small rotation ``w`` and translation ``d`` that minimise
+``sum_i rho(n_i . (m_i + w x m_i + d - q_i))``. The robust kernel rho is Tukey's biweight with a
+scale taken from the residuals' median absolute deviation (floored by ``noise``), so points that
+the reference does not explain (clutter, another part, the wrong side) weigh nothing; pairs
+farther than ``gate`` from their nearest point are left out at once. Iteratively reweighted
+least squares; a little damping keeps the 6x6 system solvable on planes and cylinders, whose
+sliding directions the data do not fix. Stops when the update turns by less than
+``tolerance_rad`` and moves by less than ``tolerance`` times ``noise``.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from service.engine.alignment import to_model_frame
-from service.engine.registration import kabsch
+from service.engine.distance_field import DistanceField
+
+NEIGHBOURS = 8  # a sample's neighbours searched when correcting the field's answer
+TUKEY = 4.685  # Tukey's constant: 95 % efficiency on Gaussian residuals
+DAMPING = 1e-6  # relative to the system's trace
+CLOSE_RAD, CLOSE = 0.01, 0.5  # steps this small switch to the corrected nearest samples
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A reference's surface as refinement and verification see it."""
+
+    points: np.ndarray  # (N, 3) float64, model frame
+    normals: np.ndarray  # (N, 3) unit, outward
+    field: DistanceField
+    neighbours: np.ndarray  # (N, k) each point's nearest others (itself first)
+
+    @classmethod
+    def of(
+        cls, points: np.ndarray, normals: np.ndarray, field: DistanceField, tree: cKDTree
+    ) -> Surface:
+        _, neighbours = tree.query(points, k=NEIGHBOURS)
+        return cls(points, normals, field, neighbours.astype(np.intp))
+
+    def nearest(self, points: np.ndarray) -> np.ndarray:
+        """Index of the surface sample nearest each of ``points`` (..., 3): the distance
+        field's answer, corrected among that sample's neighbours. The field names the sample
+        nearest the voxel's centre, which may be a voxel away from the point's own nearest;
+        that one is almost always among its neighbours."""
+        first = self.field.lookup(points)
+        candidates = self.neighbours[first]  # (..., k)
+        offsets = self.points[candidates] - points[..., None, :]
+        best = np.argmin(np.einsum("...ki,...ki->...k", offsets, offsets), axis=-1)
+        return np.take_along_axis(candidates, best[..., None], axis=-1)[..., 0]
+
+
+def rotation_vector(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: the rotation by ``|w|`` about ``w``."""
+    angle = float(np.linalg.norm(w))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = w / angle
+    cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
 
 
 def icp(
     scene: np.ndarray,
-    reference_points: np.ndarray,
-    reference_tree: cKDTree,
+    surface: Surface,
     rotation: np.ndarray,
     translation: np.ndarray,
-    iterations: int = 10,
-    trim: float = 3.0,
-    tolerance: float = 1e-3,
-) -> tuple[np.ndarray, np.ndarray]:
-    """The pose ``scene = R @ model + t`` refined from the given one."""
-    previous = np.inf
-    for _ in range(iterations):
-        distance, nearest = reference_tree.query(to_model_frame(scene, rotation, translation), k=1)
-        mean = float(distance.mean())
-        if mean > previous * (1 - tolerance):
+    noise: float,
+    gate: float,
+    iterations: int = 20,
+    tolerance_rad: float = 5e-4,
+    tolerance: float = 0.05,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """The pose ``scene = R @ model + t`` refined from the given one, and the iterations run.
+
+    ``noise`` is the smallest residual scale the kernel assumes (the sensor's noise), ``gate``
+    the largest point-to-point distance of a pair that is used at all.
+    """
+    rotation, translation = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
+    done, precise = 0, False
+    for iteration in range(1, iterations + 1):
+        done = iteration
+        model = to_model_frame(scene, rotation, translation)
+        # the distance field's own answer while far; corrected among neighbours once close
+        nearest = surface.nearest(model) if precise else surface.field.lookup(model)
+        offset = model - surface.points[nearest]
+        normals = surface.normals[nearest]
+        near = np.einsum("ij,ij->i", offset, offset) < gate**2
+        if near.sum() < 6:
             break
-        previous = mean
-        keep = distance <= trim * max(float(np.median(distance)), 1e-12)
-        if keep.sum() < 3:
-            break
-        rotation, translation = kabsch(reference_points[nearest[keep]], scene[keep])
-    return rotation, translation
+        model, offset, normals = model[near], offset[near], normals[near]
+        residual = np.einsum("ij,ij->i", offset, normals)
+        spread = max(1.4826 * float(np.median(np.abs(residual))), noise)
+        u = residual / (TUKEY * spread)
+        weight = np.where(np.abs(u) < 1, (1 - u**2) ** 2, 0.0)
+        jacobian = np.hstack([np.cross(model, normals), normals])  # (M, 6)
+        weighted = jacobian * weight[:, None]
+        system = weighted.T @ jacobian
+        system[np.diag_indices(6)] += DAMPING * np.trace(system) + 1e-12
+        step = -np.linalg.solve(system, weighted.T @ residual)
+        correction = rotation_vector(step[:3])  # model points m -> C m + d
+        rotation = rotation @ correction.T
+        translation = translation - rotation @ step[3:]
+        turned, moved = np.linalg.norm(step[:3]), np.linalg.norm(step[3:])
+        if turned < CLOSE_RAD and moved < CLOSE * noise:
+            if precise and turned < tolerance_rad and moved < tolerance * noise:
+                break
+            precise = True
+    return rotation, translation, done

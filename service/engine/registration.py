@@ -56,20 +56,34 @@ def ransac(
     iterations: int,
     rng: np.random.Generator,
     score_pairs: int = 256,
+    confidence: float = 0.99,
+    chunk: int = 50,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Robust Kabsch over putative pairs: the minimal 3-pair sample with most inliers wins.
 
-    All samples are solved at once and scored on ``score_pairs`` random pairs; the winner
-    is re-fitted on its inliers among all pairs. Returns the rotation, the translation
-    and the inlier mask.
+    Samples are solved ``chunk`` at a time and scored on ``score_pairs`` random pairs; it stops
+    after ``iterations`` samples, or earlier once the best inlier share ``w`` so far says that
+    ``log(1 - confidence) / log(1 - w^3)`` samples would have drawn an all-inlier one (the
+    adaptive termination of Hartley and Zisserman, Alg. 4.5). The winner is re-fitted on its
+    inliers among all pairs. Returns the rotation, the translation and the inlier mask.
     """
     count = len(model)
-    samples = rng.integers(0, count, size=(iterations, 3))
-    rotations, translations = kabsch_batch(model[samples], scene[samples])
     scored = rng.choice(count, size=min(count, score_pairs), replace=False)
-    residuals = squared_residuals(model[scored], scene[scored], rotations, translations)
-    best = int((residuals < threshold**2).sum(axis=0).argmax())
-    rotation, translation = rotations[best], translations[best]
+    best, best_inliers, drawn = (np.eye(3), np.zeros(3)), -1, 0
+    while drawn < iterations:
+        size = min(chunk, iterations - drawn)
+        samples = rng.integers(0, count, size=(size, 3))
+        rotations, translations = kabsch_batch(model[samples], scene[samples])
+        residuals = squared_residuals(model[scored], scene[scored], rotations, translations)
+        inliers = (residuals < threshold**2).sum(axis=0)
+        drawn += size
+        top = int(inliers.argmax())
+        if inliers[top] > best_inliers:
+            best, best_inliers = (rotations[top], translations[top]), int(inliers[top])
+        share = best_inliers / len(scored)
+        if share >= 1 or drawn >= np.log(1 - confidence) / np.log(1 - max(share, 1e-6) ** 3):
+            break
+    rotation, translation = best
     mask = ((model @ rotation.T + translation - scene) ** 2).sum(axis=1) < threshold**2
     if mask.sum() >= 3:
         rotation, translation = kabsch(model[mask], scene[mask])

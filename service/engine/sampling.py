@@ -43,5 +43,12 @@ def sample_surface(mesh: trimesh.Trimesh, count: int, seed: int) -> np.ndarray:
 
     Returns a (count, 3) float32 array in the mesh's own frame.
     """
-    points, _ = trimesh.sample.sample_surface(mesh, count, seed=seed)
-    return np.asarray(points, dtype=np.float32)
+    return sample_surface_faces(mesh, count, seed)[0]
+
+
+def sample_surface_faces(
+    mesh: trimesh.Trimesh, count: int, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``sample_surface``'s points and the index of the face each lies on."""
+    points, faces = trimesh.sample.sample_surface(mesh, count, seed=seed)
+    return np.asarray(points, dtype=np.float32), np.asarray(faces, dtype=np.intp)

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from service import memory
 from service.engine.engine import Engine
@@ -112,13 +113,16 @@ class Catalog:
         replace: bool = False,
         self_check_poses: int = 0,
         commit: Callable[[], None] = lambda: None,
+        mesh: trimesh.Trimesh | None = None,
+        face_index: np.ndarray | None = None,
     ) -> tuple[Reference, bool, list[dict] | None]:
         """Compute, store and add a reference; returns it, whether it was new, its self-check.
 
+        ``points`` were sampled on ``mesh``'s faces ``face_index`` when it came as a mesh.
         ``commit`` is called just before the durable write and may raise to stop it.
         """
         self._check_can_add(name, replace)  # fail fast, before the slow part
-        reference = self.engine.make_reference(name, points)
+        reference = self.engine.make_reference(name, points, mesh=mesh, face_index=face_index)
         with self._write_lock:
             existed = self._check_can_add(name, replace)
             previous = self.engine.get(name)

@@ -82,8 +82,9 @@ def decode(row: Row) -> dict[str, Any]:
 
 
 def missing(values: dict[str, Any]) -> tuple[str, ...]:
-    """The fields of ``Reference`` that stored values lack (written by an older version)."""
-    return tuple(f.name for f in dataclasses.fields(Reference) if f.name not in values)
+    """The fields of ``Reference`` that stored values lack, or hold as None (written by an older
+    version, or seeded from a gallery file made before the field existed)."""
+    return tuple(f.name for f in dataclasses.fields(Reference) if values.get(f.name) is None)
 
 
 def to_reference(values: dict[str, Any]) -> Reference:

@@ -11,7 +11,7 @@ from starlette.exceptions import HTTPException
 from service.api.auth import AdminAccess, ReadAccess
 from service.api.dependencies import CatalogDep, EngineDep, LimiterDep, SettingsDep
 from service.api.limiter import Job
-from service.api.parsers import read_points
+from service.api.parsers import Upload, read_upload
 from service.api.routes.common import (
     JSON,
     body_kind,
@@ -104,12 +104,20 @@ def _register(
     """Validate, read the points, compute and store the reference (in a worker thread)."""
     identity = parse(ReferenceIdentity, {k: v for k, v in fields.items() if k != "points"})
     if source is None:
-        points = require(fields, "points")
+        upload = Upload(require(fields, "points"))
     else:
-        points = read_points(*source, mesh_points=settings.gallery.reference_points)
+        upload = read_upload(*source, mesh_points=settings.gallery.reference_points)
     limits = settings.limits
-    points = validate_points(points, limits.min_points, limits.max_points)
-    return catalog.register(identity.name, points, replace, self_check_poses, job.commit)
+    points = validate_points(upload.points, limits.min_points, limits.max_points)
+    return catalog.register(
+        identity.name,
+        points,
+        replace,
+        self_check_poses,
+        job.commit,
+        mesh=upload.mesh,
+        face_index=upload.face_index,
+    )
 
 
 @router.get(

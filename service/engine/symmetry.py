@@ -1,0 +1,176 @@
+"""A part's rotational symmetries, found at registration by aligning it with itself.
+
+A bottle turned about its own axis, or a box turned by 180 degrees, shows the same surface:
+every such pose is right, and a robot must get one and the same answer for the same physical
+situation. Registration finds the rotations S (about the centroid c, in the model frame) that
+carry the reference onto itself:
+- ``revolution``: a principal axis whose two other variances are alike, about which turns by
+  several unrelated angles all fit; ``flip`` says whether a half turn about a perpendicular
+  axis fits as well (a cylinder, not a cone);
+- ``discrete``: the rotations that fit after refining, by point-to-plane ICP of the reference
+  onto itself, every signed permutation of its principal axes, turns by 360/n degrees about
+  them (n = 2 to 8) and a few random rotations (a box: 4, a cube: 24, a hexagonal nut: 12);
+- ``none``: only the identity fits.
+"Fits" means that at least ``SHARE`` of the moved points lie within ``TOLERANCE`` of the
+reference's surface.
+
+Among poses the symmetry makes equivalent (``R S`` with the translation that keeps the scene
+in place), ``canonical`` answers the one whose rotation is nearest the identity (the largest
+trace), so the same surface in the same place always gives the same matrix.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import permutations, product
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from service.engine.icp import Surface, icp, rotation_vector
+from service.engine.principal_axes import principal_axes
+from service.engine.verification import surface_distance
+
+TOLERANCE = 0.015  # share of the scale
+SHARE = 0.95  # of the moved points within the tolerance
+REVOLUTION_ANGLES_DEG = (37.0, 101.0, 163.0, 229.0, 293.0)
+ROUND_AXES = 0.1  # the other two spreads (standard deviations) differ by at most this share
+MAX_FOLD = 8
+RANDOM_STARTS = 24
+SAME_DEG = 5.0  # two found rotations this close are one
+
+
+@dataclass(frozen=True)
+class Symmetry:
+    kind: str  # "none" | "revolution" | "discrete"
+    centroid: np.ndarray  # (3,) the rotations' fixed point, model frame
+    rotations: np.ndarray  # (G, 3, 3), identity first: every discrete symmetry (or a flip)
+    axis: np.ndarray | None = None  # revolution: unit axis through the centroid
+
+    @classmethod
+    def none(cls, centroid: np.ndarray) -> Symmetry:
+        return cls("none", np.asarray(centroid, np.float64), np.eye(3)[None])
+
+    def describe(self) -> dict:
+        """The JSON description a reference shows (and the store keeps)."""
+        described: dict = {"kind": self.kind}
+        if self.kind == "revolution":
+            described["axis"] = np.round(self.axis, 6).tolist()
+            described["flip"] = len(self.rotations) > 1
+        elif self.kind == "discrete":
+            described["rotations"] = np.round(self.rotations, 6).tolist()
+        described["centre"] = np.round(self.centroid, 9).tolist()
+        return described
+
+    @classmethod
+    def from_description(cls, described: dict, centroid: np.ndarray) -> Symmetry:
+        centre = np.asarray(described.get("centre", centroid), np.float64)
+        if described.get("kind") == "revolution":
+            axis = np.asarray(described["axis"], np.float64)
+            rotations = [np.eye(3)]
+            if described.get("flip"):
+                rotations.append(rotation_vector(np.pi * _perpendicular(axis)))
+            return cls("revolution", centre, np.stack(rotations), axis / np.linalg.norm(axis))
+        if described.get("kind") == "discrete":
+            return cls("discrete", centre, np.asarray(described["rotations"], np.float64))
+        return cls.none(centre)
+
+    def equivalent(self, rotation: np.ndarray) -> np.ndarray:
+        """(G, 3, 3) rotations equivalent to ``rotation`` under the discrete part."""
+        return np.einsum("ij,gjk->gik", rotation, self.rotations)
+
+    def canonical(
+        self, rotation: np.ndarray, translation: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The equivalent pose whose rotation is nearest the identity."""
+        if self.kind == "none":
+            return rotation, translation
+        choices = self.equivalent(rotation)
+        if self.kind == "revolution":  # turn each about the axis to its best angle
+            choices = np.stack([c @ _best_turn(c, self.axis) for c in choices])
+        best = choices[int(np.argmax(np.trace(choices, axis1=1, axis2=2)))]
+        # scene = R m + t = R' m' + t' with m' = S^T (m - c) + c, S = R^T R'
+        return best, translation + (rotation - best) @ self.centroid
+
+    def distance_deg(self, first: np.ndarray, second: np.ndarray) -> float:
+        """The angle between two rotations once symmetry is accounted for, in degrees."""
+        a, _ = self.canonical(first, np.zeros(3))
+        b, _ = self.canonical(second, np.zeros(3))
+        return float(np.degrees(np.arccos(np.clip((np.trace(a.T @ b) - 1) / 2, -1, 1))))
+
+
+def _perpendicular(axis: np.ndarray) -> np.ndarray:
+    helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
+    other = np.cross(axis, helper)
+    return other / np.linalg.norm(other)
+
+
+def _best_turn(rotation: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """The turn T about ``axis`` maximising trace(R T): R T is then nearest the identity.
+
+    trace(R T(theta)) = A cos(theta) + B sin(theta) + C with A = trace(R) - a.R.a,
+    B = trace(R [a]x) and C = a.R.a, so theta = atan2(B, A).
+    """
+    a = axis
+    cross = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    along = a @ rotation @ a
+    theta = np.arctan2(np.trace(rotation @ cross), np.trace(rotation) - along)
+    return rotation_vector(a * theta)
+
+
+def _fits(surface: Surface, points: np.ndarray, rotation: np.ndarray, centroid, scale) -> bool:
+    moved = (points - centroid) @ rotation.T + centroid
+    distance, _ = surface_distance(surface, moved, TOLERANCE * scale)
+    return bool((distance < TOLERANCE * scale).mean() >= SHARE)
+
+
+def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> Symmetry:
+    """The reference's rotational symmetry (see the module's docstring)."""
+    points = surface.points
+    centroid = points.mean(axis=0)
+    frame = principal_axes(points - centroid)
+    spread = np.sqrt(np.maximum(np.var((points - centroid) @ frame, axis=0), 0))
+    chosen = points[rng.choice(len(points), size=min(512, len(points)), replace=False)]
+    for k in range(3):
+        others = [spread[j] for j in range(3) if j != k]
+        if abs(others[0] - others[1]) > ROUND_AXES * max(others):
+            continue
+        axis = frame[:, k]
+        turns = [rotation_vector(axis * np.radians(a)) for a in REVOLUTION_ANGLES_DEG]
+        if all(_fits(surface, chosen, turn, centroid, scale) for turn in turns):
+            flip = rotation_vector(np.pi * _perpendicular(axis))
+            rotations = [np.eye(3)] + (
+                [flip] if _fits(surface, chosen, flip, centroid, scale) else []
+            )
+            return Symmetry("revolution", centroid, np.stack(rotations), axis)
+
+    starts = []
+    for order in permutations(range(3)):
+        for signs in product((1.0, -1.0), repeat=3):
+            candidate = frame[:, order] * signs
+            if np.linalg.det(candidate) > 0:
+                starts.append(candidate @ frame.T)
+    for k, fold in product(range(3), range(2, MAX_FOLD + 1)):
+        starts.append(rotation_vector(frame[:, k] * 2 * np.pi / fold))
+    starts += list(Rotation.random(RANDOM_STARTS, random_state=rng).as_matrix())
+    found = [np.eye(3)]
+    noise, gate = 0.002 * scale, 0.3 * scale
+    for start in starts:
+        rotation, translation, _ = icp(
+            chosen, surface, start, centroid - start @ centroid, noise, gate, iterations=30
+        )
+        # a symmetry about the centroid: the translation must keep the centroid in place
+        if np.linalg.norm(rotation @ centroid + translation - centroid) > TOLERANCE * scale:
+            continue
+        if not _fits(surface, chosen, rotation, centroid, scale):
+            continue
+        if all(_angle_deg(rotation, other) > SAME_DEG for other in found):
+            found.append(rotation)
+    if len(found) == 1:
+        return Symmetry.none(centroid)
+    return Symmetry("discrete", centroid, np.stack(found))
+
+
+def _angle_deg(first: np.ndarray, second: np.ndarray) -> float:
+    cosine = (np.trace(first.T @ second) - 1) / 2
+    return float(np.degrees(np.arccos(np.clip(cosine, -1, 1))))

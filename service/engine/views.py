@@ -1,0 +1,121 @@
+"""Single-camera views of a reference, rendered at registration.
+
+A depth camera sees one side of a part. To recognise and pose such a view, the engine keeps,
+for each of ``count`` camera directions spread evenly over the sphere (a Fibonacci lattice),
+which reference points that camera sees, and what recognition and pose need of them: their
+centroid, principal frame and radius, and the classifier's features of their grid (eq. 4 then
+learns a part's views rather than only its full shape).
+
+The camera of a view sits ``CAMERA_DISTANCE`` scales from the centroid, in the middle of a
+cell camera's working range (4 to 8 scales, shared/EVALUATION.md). Which points it sees:
+- for an uploaded mesh, a depth buffer of a dense sample of its surface (each pixel keeps its
+  nearest surface sample; a reference point is seen if it is no deeper than that sample, plus a
+  tolerance): a point-based rendering of the mesh itself;
+- for an uploaded cloud, hidden-point removal (``service.engine.visibility``), which needs no
+  surface.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.engine.principal_axes import principal_axes
+from service.engine.visibility import visible_points
+
+CAMERA_DISTANCE = 6.0  # scales from the centroid to a view's camera
+PIXEL_SPACINGS = 2.0  # a depth-buffer pixel spans this many surface-sample spacings
+DEPTH_SPACINGS = 3.0  # a point this many spacings behind a pixel's nearest sample is hidden
+
+
+def directions(count: int) -> np.ndarray:
+    """(count, 3) unit vectors spread evenly over the sphere (a Fibonacci lattice)."""
+    index = np.arange(count) + 0.5
+    z = 1 - 2 * index / count
+    azimuth = np.pi * (1 + 5**0.5) * index
+    ring = np.sqrt(1 - z**2)
+    return np.stack([ring * np.cos(azimuth), ring * np.sin(azimuth), z], axis=1)
+
+
+def camera_basis(direction: np.ndarray) -> np.ndarray:
+    """(3, 3) rows u, v, d: an orthonormal frame whose third axis is ``direction``."""
+    d = direction / np.linalg.norm(direction)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(helper, d)
+    u /= np.linalg.norm(u)
+    return np.stack([u, np.cross(d, u), d])
+
+
+def splat_visible(
+    points: np.ndarray, surface: np.ndarray, camera: np.ndarray, spacing: float
+) -> np.ndarray:
+    """Which ``points`` a pinhole camera at ``camera`` sees over the dense ``surface`` sample
+    (spacing: the sample's typical distance between neighbours)."""
+    target = surface.mean(axis=0)
+    basis = camera_basis(camera - target)
+
+    def project(cloud: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        relative = (cloud - camera) @ basis.T  # camera looks along -d
+        depth = -relative[:, 2]
+        pixel = PIXEL_SPACINGS * spacing / np.linalg.norm(camera - target)
+        cells = np.floor(relative[:, :2] / np.maximum(depth, 1e-12)[:, None] / pixel)
+        cells = cells.astype(np.int64)
+        return (cells[:, 0] << 32) + (cells[:, 1] & 0xFFFFFFFF), depth
+
+    surface_keys, surface_depth = project(surface)
+    order = np.lexsort((surface_depth, surface_keys))
+    keys, first = np.unique(surface_keys[order], return_index=True)
+    nearest = surface_depth[order][first]  # per pixel: the nearest surface sample's depth
+    point_keys, point_depth = project(points)
+    slot = np.clip(np.searchsorted(keys, point_keys), 0, len(keys) - 1)
+    covered = keys[slot] == point_keys
+    front = np.where(covered, nearest[slot], np.inf)
+    return point_depth <= front + DEPTH_SPACINGS * spacing
+
+
+def sample_spacing(points: np.ndarray, area: float) -> float:
+    """The typical distance between neighbouring samples of a surface of ``area``."""
+    return float(np.sqrt(area / max(len(points), 1)))
+
+
+def render(
+    points: np.ndarray,
+    scale: float,
+    count: int,
+    surface: np.ndarray | None = None,
+    area: float | None = None,
+) -> np.ndarray:
+    """(count, N) which reference points each view's camera sees: against ``surface`` (a dense
+    sample of the uploaded mesh, whose ``area`` is known) when given, else by hidden-point
+    removal on the points themselves."""
+    points = np.asarray(points, dtype=np.float64)
+    centroid = points.mean(axis=0)
+    cameras = centroid + directions(count) * CAMERA_DISTANCE * scale
+    if surface is None:
+        return np.stack([visible_points(points, camera) for camera in cameras])
+    spacing = sample_spacing(surface, area)
+    return np.stack([splat_visible(points, surface, camera, spacing) for camera in cameras])
+
+
+@dataclass(frozen=True)
+class Views:
+    """What recognition and pose need of a reference's single-camera views."""
+
+    directions: np.ndarray  # (K, 3) from the reference's centroid towards each camera
+    visible: np.ndarray  # (K, N) bool: the points each camera sees
+    centroids: np.ndarray  # (K, 3) of the visible points
+    frames: np.ndarray  # (K, 3, 3) their principal axes (columns), largest variance first
+    radii: np.ndarray  # (K,) largest distance from the centroid to a visible point
+
+    @classmethod
+    def of(cls, points: np.ndarray, visible: np.ndarray) -> Views:
+        points = np.asarray(points, dtype=np.float64)
+        count = len(visible)
+        centroids, frames, radii = np.zeros((count, 3)), np.zeros((count, 3, 3)), np.zeros(count)
+        for k, seen in enumerate(visible):
+            chosen = points[seen] if seen.sum() >= 3 else points
+            centroids[k] = chosen.mean(axis=0)
+            frames[k] = principal_axes(chosen - centroids[k])
+            radii[k] = np.sqrt(((chosen - centroids[k]) ** 2).sum(axis=1).max())
+        return cls(directions(count), visible, centroids, frames, radii)
