@@ -378,27 +378,22 @@ class Engine:
         shortlist = shortlist[: top_k or settings.top_k]
         clock.lap("classify")
 
+        # 4-6. The whole part: hypotheses from its principal axes, verified, the best refined.
         search = Search(self, snapshot, observed, observed_mapped, viewpoint, rng, clock)
-        # 4-6. The whole part: hypotheses from the whole reference (principal axes first, the
-        # mapped pairs if those are not excellent), verified, the best refined.
-        fits: list[Fit] = []
-        for group in WHOLE_GROUPS:
-            whole = [s for s in chosen_sources if s in group]
-            best = max(fits, key=lambda f: f.score, default=None)
-            if whole and (best is None or best.score < settings.excellent):
-                fits += search.run({row: whole for row in shortlist}, refine, WHOLE_REFINED)
-        best = max(fits, key=lambda f: f.score, default=None)
-        if "views" in chosen_sources and (best is None or best.score < settings.excellent):
+        whole = [s for s in chosen_sources if s == "principal-axes"]
+        fits = search.run({row: whole for row in shortlist}, refine, WHOLE_REFINED)
+        if "views" in chosen_sources and not excellent(fits, settings):
             # 3b-6. Single views: the parts whose rendered views' grids look most like the
             # observation's, and eq. (4)'s; hypotheses from every rendered view of each.
             rows = [*self._nearest_views(snapshot, observed_grid, size, allowed, top_k)]
             rows += [row for row in shortlist if row not in rows]
             clock.lap("classify")
-            planned = {
-                row: ["views"] + (["principal-axes"] if row not in shortlist else [])
-                for row in rows
-            }
+            planned = {row: ["views", *(whole if row not in shortlist else [])] for row in rows}
             fits += search.run(planned, refine, settings.refine_best)
+        paired = [s for s in chosen_sources if s in ("mapped", "paper")]
+        if paired and not excellent(fits, settings):
+            # 4-6 again with the mapped pairs: what the learned mapping pairs, solved.
+            fits += search.run({row: paired for row in shortlist}, refine, WHOLE_REFINED)
         if not fits:  # nothing of a plausible size: no search over the wrong sizes
             return self._no_match_by_size(snapshot, allowed, size, scores, clock)
 
@@ -517,6 +512,11 @@ class Engine:
         return checks
 
 
+def excellent(fits: list[Fit], settings: EngineSettings) -> bool:
+    """Whether the best fit so far ends the search."""
+    return any(f.score >= settings.excellent for f in fits)
+
+
 def size_reason(factor: float) -> str:
     """Why an observation of ``factor`` times the nearest reference's size matches nothing."""
     for unit_factor, unit in ((1000.0, "millimetres"), (100.0, "centimetres")):
@@ -540,7 +540,6 @@ EXPECTED = 128  # expected-visible points drawn per view for coverage
 SPACINGS = 1.5  # the occupancy's voxel is at least this many observed-point spacings
 QUICK_POINTS = 24  # observed and expected points of the quick look that screens hypotheses
 WHOLE_REFINED = 2  # hypotheses refined in each whole-part pass
-WHOLE_GROUPS = (("principal-axes",), ("mapped", "paper"))  # the whole-part passes, in order
 ENOUGH_BEHIND = 0.8  # a hypothesis this far below an excellent refined one is not refined
 FAR_BELOW = 0.5  # nor one below this share of the best hypothesis before refining
 
