@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, Field, field_validator
+from pydantic import BaseModel, BeforeValidator, Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -32,7 +32,8 @@ class EngineSettings(BaseModel):
     # observed radius / reference scale of a plausible candidate (full views: 0.96-1.05,
     # one camera's view: 0.85-1.45, measured); (0, inf) turns the size check off
     size_ratio: tuple[float, float] = (0.7, 1.6)
-    hypotheses: tuple[str, ...] = ("mapped", "principal-axes")  # also: "paper"
+    # one or more of service.engine.hypotheses.SOURCES, also "paper" (checked at start)
+    hypotheses: tuple[str, ...] = ("mapped", "principal-axes")
     ransac_iterations: int = Field(200, ge=1)
     ransac_threshold: float = Field(0.08, gt=0)  # inlier distance, share of the reference's scale
     verify_points: int = Field(128, ge=16)  # subsample for the cheap alignment-error check
@@ -92,11 +93,18 @@ class AuthSettings(BaseModel):
         return keys
 
 
+LogLevel = Literal["critical", "error", "warning", "info", "debug"]
+
+
+def lower(value: object) -> object:
+    return value.lower() if isinstance(value, str) else value
+
+
 class ServerSettings(BaseModel):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
     workers_threads: int = Field(2, ge=1)  # threads that run alignments off the event loop
-    log_level: str = "info"
+    log_level: Annotated[LogLevel, BeforeValidator(lower)] = "info"  # INFO reads as info
     log_format: Literal["json", "text"] = "json"  # json: one object a line
 
 
