@@ -1,11 +1,14 @@
 """``python -m service``: check, then serve the app with uvicorn on the settings' host and port.
 
 Bad settings or a failed startup check (``service.api.startup``) end the process with one line on
-stderr and exit status 2, before anything listens; no traceback.
+stderr and exit status 2, before anything listens; no traceback. A ``DPC_`` variable that names no
+setting is logged as a warning first.
 """
 
 from __future__ import annotations
 
+import logging
+import os
 import sys
 from typing import NoReturn
 
@@ -26,13 +29,15 @@ def main() -> None:
         fail(f"invalid settings: {settings_message(error)}")
     except SettingsError as error:  # a DPC_* value that is not JSON where JSON is expected
         fail(f"invalid settings: {error}; a group's value is JSON, e.g. DPC_AUTH__KEYS='{{...}}'")
+    logs.configure(settings.server.log_level, settings.server.log_format)
+    for warning in startup.unknown_variables(os.environ):  # DPC_SERVR__PORT: a typo, ignored
+        logging.getLogger("service").warning(warning)
     memory.fix_mmap_threshold()  # before the model, the gallery and the worker threads
     startup.quiet_onnxruntime()
     try:
         prepared = startup.prepare(settings)  # here, so that a failure ends with one line
     except startup.StartupError as error:
         fail(str(error))
-    logs.configure(settings.server.log_level, settings.server.log_format)
     # the lifespan logs the model's path, hash and execution providers once they are loaded
     uvicorn.run(
         create_app(settings, prepared),

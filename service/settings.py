@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, Field, field_validator
+from pydantic import BaseModel, BeforeValidator, Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -34,7 +34,8 @@ class EngineSettings(BaseModel):
     size_ratio: tuple[float, float] = (0.7, 1.6)
     # observed radius / a rendered view's radius for that view to be proposed
     view_size_ratio: tuple[float, float] = (0.8, 1.25)
-    hypotheses: tuple[str, ...] = ("views", "principal-axes", "mapped")  # also: "paper"
+    # one or more of service.engine.hypotheses.SOURCES (checked at start)
+    hypotheses: tuple[str, ...] = ("views", "principal-axes", "mapped")
     views: int = Field(100, ge=4)  # single-camera views rendered per reference
     view_candidates: int = Field(6, ge=1)  # parts the nearest rendered views propose
     screened: int = Field(32, ge=1)  # a candidate's hypotheses kept by the quick first look
@@ -101,11 +102,18 @@ class AuthSettings(BaseModel):
         return keys
 
 
+LogLevel = Literal["critical", "error", "warning", "info", "debug"]
+
+
+def lower(value: object) -> object:
+    return value.lower() if isinstance(value, str) else value
+
+
 class ServerSettings(BaseModel):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
     workers_threads: int = Field(2, ge=1)  # threads that run alignments off the event loop
-    log_level: str = "info"
+    log_level: Annotated[LogLevel, BeforeValidator(lower)] = "info"  # INFO reads as info
     log_format: Literal["json", "text"] = "json"  # json: one object a line
 
 

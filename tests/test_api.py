@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import socket
 import threading
 import time
@@ -28,6 +29,7 @@ from service.engine.mapping import file_sha256
 from service.engine.reference import Reference
 from service.settings import EngineSettings, LimitSettings, Settings
 from tests.backends import Location
+from tests.test_parsers import BROKEN_STL, LATIN1_STL
 
 SHIPPED = Settings()
 pytestmark = pytest.mark.skipif(
@@ -208,6 +210,15 @@ def test_register_uploaded_files(api, server):
         assert created.status_code == 201, created.text
         assert created.json()["num_points"] == 300  # used as is
 
+    # a text STL whose solid name is not UTF-8 (trimesh decodes it with charset_normalizer)
+    upload = {"file": ("part.stl", LATIN1_STL)}
+    latin1 = api.post("/references", data={"name": "stl-latin-1"}, files=upload)
+    assert latin1.status_code == 201, latin1.text
+    assert api.delete("/references/stl-latin-1").status_code == 204
+    broken = api.post("/references", data={"name": "x"}, files={"file": ("a.stl", BROKEN_STL)})
+    assert broken.status_code == 422 and "STL mesh is unusable" in detail(broken)
+    assert "module" not in detail(broken)
+
     bad = api.post("/references", data={"name": "x"}, files={"file": ("a.npy", b"nonsense")})
     assert bad.status_code == 422 and "NPY" in detail(bad)
     no_file = api.post("/references", data={"name": "x"}, files={"other": ("a.npy", b"")})
@@ -241,6 +252,7 @@ def test_bad_points_are_refused_and_change_nothing(api, problem):
         response = api.post(
             "/references", content=body, headers={"content-type": "application/json"}
         )
+        body = json.dumps({"points": points}).encode()
         align = api.post("/align", content=body, headers={"content-type": "application/json"})
     else:
         response = api.post("/references", json={"name": "bad", "points": points})
@@ -248,6 +260,19 @@ def test_bad_points_are_refused_and_change_nothing(api, problem):
     for answer in (response, align):
         assert answer.status_code == 422, answer.text
         assert problem in detail(answer)
+    assert api.get("/references").json() == before
+
+
+def test_unknown_reference_fields_are_refused_and_change_nothing(api):
+    before = api.get("/references").json()
+    misspelt = api.post("/references", json={"nmae": "typo", "name": "typo", "points": GOOD})
+    assert misspelt.status_code == 422
+    assert "'nmae' (did you mean 'name'?)" in detail(misspelt)
+    assert "the accepted fields are name, points" in detail(misspelt)
+    upload = {"file": ("part.npy", npy(np.asarray(GOOD, np.float32)))}
+    extra = api.post("/references", data={"name": "typo", "replace": "true"}, files=upload)
+    assert extra.status_code == 422 and "'replace'" in detail(extra)
+    assert "name, file" in detail(extra)
     assert api.get("/references").json() == before
 
 
@@ -343,6 +368,34 @@ def test_bad_align_requests(api, seeded):
     assert query.status_code == 422 and "top_k" in detail(query)
     xml = api.post("/align", content=b"<points/>", headers={"content-type": "application/xml"})
     assert xml.status_code == 415 and "application/xml" in detail(xml)
+
+
+def test_unknown_align_fields_are_refused(api, seeded):
+    scene = box_points(200).tolist()
+    for field, words in (("candidate", "did you mean 'candidates'?"), ("viewpont", "'viewpoint'")):
+        response = api.post("/align", json={"points": scene, field: [seeded[0]]})
+        assert response.status_code == 422, response.text
+        assert f"unknown field '{field}'" in detail(response) and words in detail(response)
+        accepted = "candidates, top_k, refine, viewpoint, min_confidence, points"
+        assert accepted in detail(response)
+    both = api.post("/align", json={"points": scene, "topk": 1, "refined": False})
+    assert both.status_code == 422 and "unknown fields 'topk'" in detail(both)
+    assert "'refined' (did you mean 'refine'?)" in detail(both)
+
+
+def test_every_field_of_the_contract_is_accepted(api, seeded):
+    scene = moved(box_points(400, seed=8))[0].tolist()
+    contract = {
+        "points": scene,
+        "candidates": seeded[:2],
+        "top_k": 2,
+        "refine": False,
+        "viewpoint": [0.0, 0.0, 0.0],
+        "min_confidence": 0.5,
+    }
+    response = api.post("/align", json=contract)
+    assert response.status_code == 200, response.text
+    assert response.json()["label"] in seeded[:2]
 
 
 def test_viewpoint_is_three_finite_numbers(api, seeded):
@@ -474,6 +527,22 @@ def test_openapi_document(api):
     jsonschema = pytest.importorskip("jsonschema")
     for schema in schemas.values():
         jsonschema.Draft202012Validator.check_schema(schema)
+
+
+def test_the_documentation_pages_load_nothing_from_another_host(api):
+    """/docs and /redoc work on a cell's network: every file they load comes from the service."""
+    for page in ("/docs", "/redoc"):
+        response = api.get(page)
+        assert response.status_code == 200 and "text/html" in response.headers["content-type"]
+        html = response.text
+        assert not re.search(r"(https?:)?//[a-z0-9.-]+\.[a-z]{2,}", html, re.IGNORECASE), html
+        assets = re.findall(r'(?:src|href|url|spec-url)\s*[=:]\s*["\']([^"\']+)["\']', html)
+        assert any(a.endswith(".js") for a in assets), assets
+        assert "/openapi.json" in assets, assets
+        for asset in assets:
+            assert asset.startswith("/"), asset
+            loaded = api.get(asset)
+            assert loaded.status_code == 200 and len(loaded.content) > 0, asset
 
 
 # --- other servers: empty, restarted, damaged -----------------------------------------

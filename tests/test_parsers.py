@@ -50,6 +50,27 @@ def test_a_binary_stl_is_recognised_without_a_suffix(box):
     assert read_points(data, "upload", COUNT).shape == (COUNT, 3)
 
 
+# text STLs from CAD tools that write their own code page: trimesh decodes them with
+# charset_normalizer, which the runtime dependencies must bring (tests/test_runtime_install.py)
+LATIN1_STL = (
+    "solid pi\xe8ce\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 0.1 0 0\n"
+    "vertex 0 0.1 0\nendloop\nendfacet\nendsolid pi\xe8ce\n".encode("latin-1")
+)
+BROKEN_STL = b"solid part\n\xff\xfe facet normal 0 0 1\nendsolid\n"
+
+
+def test_a_text_stl_that_is_not_utf8_is_read():
+    points = read_points(LATIN1_STL, "part.stl", COUNT)
+    assert points.shape == (COUNT, 3) and np.all(np.abs(points[:, 2]) < 1e-7)
+
+
+def test_a_malformed_text_stl_is_named():
+    with pytest.raises(InvalidPoints) as caught:
+        read_points(BROKEN_STL, "part.stl", COUNT)
+    assert "STL mesh is unusable" in str(caught.value)
+    assert "module" not in str(caught.value)  # not "No module named 'charset_normalizer'"
+
+
 def test_a_ply_cloud_is_used_as_is(cloud):
     data = trimesh.PointCloud(cloud).export(file_type="ply")
     np.testing.assert_allclose(read_points(data, "scan.ply", COUNT), cloud)

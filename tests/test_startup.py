@@ -1,6 +1,8 @@
 """Startup checks: ``python -m service`` stops with one line on stderr and exit status 2, no
 traceback, for a missing or corrupt model, an unusable data directory, an incompatible
-database, or bad settings; the app built in-process refuses to start the same way."""
+database, or bad settings (every setting whose values form a set among them); the app built
+in-process refuses to start the same way. A ``DPC_`` variable that names no setting is warned
+about."""
 
 from __future__ import annotations
 
@@ -8,15 +10,26 @@ import asyncio
 import json
 import shutil
 import sqlite3
+import typing
 
 import pytest
+from pydantic import BaseModel, ValidationError
 
+from service.__main__ import settings_message
 from service.api.app import create_app
-from service.api.startup import StartupError, prepare
+from service.api.startup import (
+    CHOICES,
+    StartupError,
+    check_choices,
+    prepare,
+    setting_variables,
+    unknown_variables,
+)
+from service.engine.hypotheses import SOURCES
 from service.engine.mapping import file_sha256
 from service.gallery.sqlite_store import FILENAME, SQLiteStore
 from service.gallery.store import SCHEMA_VERSION, StoreIncompatible
-from service.settings import GallerySettings, ModelSettings, Settings
+from service.settings import EngineSettings, GallerySettings, ModelSettings, Settings
 from tests.servers import MODEL, run_service
 
 pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
@@ -131,3 +144,107 @@ def test_the_app_in_process_refuses_to_start_too(tmp_path):
 
     with pytest.raises(StartupError, match="no ONNX model"):
         asyncio.run(start())
+
+
+# --- settings whose values form a set ---------------------------------------------------
+
+
+def test_a_misspelt_hypothesis_source_stops_startup(tmp_path):
+    """``mapd`` for ``mapped``: it used to start, report ready and answer 500 to every /align."""
+    result = run_service(tmp_path / "data", engine__hypotheses='["mapped", "mapd"]')
+    line = refused(result, "invalid settings", "DPC_ENGINE__HYPOTHESES", "'mapd'")
+    assert all(f"'{source}'" in line for source in SOURCES)  # the engine's names, all of them
+
+
+@pytest.mark.parametrize("sources", [("mapd",), (), ("mapped", "Paper")])
+def test_hypothesis_sources_are_the_engines(tmp_path, sources):
+    settings = Settings(engine=EngineSettings(hypotheses=sources))
+    with pytest.raises(StartupError, match="DPC_ENGINE__HYPOTHESES") as caught:
+        check_choices(settings)
+    assert all(f"'{source}'" in str(caught.value) for source in SOURCES)
+    for source in SOURCES:  # whatever the engine adds to SOURCES is allowed, alone or together
+        check_choices(Settings(engine=EngineSettings(hypotheses=(source,))))
+    check_choices(Settings(engine=EngineSettings(hypotheses=SOURCES)))
+
+
+def literal_settings() -> list[tuple[str, str, tuple]]:
+    """(group, field, allowed values) of every setting typed as a fixed set of strings."""
+    found = []
+    for group, info in Settings.model_fields.items():
+        for field, inner in info.annotation.model_fields.items():
+            kind = inner.annotation
+            if typing.get_origin(kind) is typing.Annotated:
+                kind = typing.get_args(kind)[0]
+            if typing.get_origin(kind) is typing.Literal:
+                found.append((group, field, typing.get_args(kind)))
+    return found
+
+
+ENUMERATED = [("server", "log_level"), ("server", "log_format")]
+
+
+def test_every_enumerated_setting_is_listed_here_or_in_choices():
+    """A new setting of a fixed set of values gets a case in the test below (or CHOICES), and
+    a new string setting is either one of those or free text on purpose."""
+    assert {(g, f) for g, f, _ in literal_settings()} == set(ENUMERATED)
+    free_text = {("server", "host"), ("gallery", "url")}
+    for group, info in Settings.model_fields.items():
+        for field, inner in info.annotation.model_fields.items():
+            if inner.annotation in (str, str | None, tuple[str, ...]):
+                assert (group, field) in free_text | set(CHOICES), (group, field)
+
+
+@pytest.mark.parametrize(("group", "field"), ENUMERATED)
+def test_an_enumerated_setting_names_the_variable_and_its_values(monkeypatch, group, field):
+    variable = f"DPC_{group}__{field}".upper()
+    monkeypatch.setenv(variable, "loud")
+    with pytest.raises(ValidationError) as caught:
+        Settings()
+    message = settings_message(caught.value)
+    assert variable in message
+    allowed = dict(((g, f), a) for g, f, a in literal_settings())[(group, field)]
+    assert all(f"'{value}'" in message for value in allowed), message
+
+
+def test_a_log_level_in_capitals_is_accepted_and_a_wrong_one_refused(tmp_path, monkeypatch):
+    monkeypatch.setenv("DPC_SERVER__LOG_LEVEL", "WARNING")
+    assert Settings().server.log_level == "warning"
+    result = run_service(tmp_path / "data", server__log_level="verbose")
+    refused(result, "DPC_SERVER__LOG_LEVEL", "'info'", "'debug'")
+
+
+# --- DPC_ variables that name no setting ------------------------------------------------
+
+
+def test_a_variable_that_names_no_setting_is_warned_about(tmp_path):
+    """The warning comes before the checks, so it also explains a start-up that fails."""
+    result = run_service(
+        tmp_path / "data",
+        servr__port="9000",
+        engine__topk="5",
+        model__path=str(tmp_path / "nothing.onnx"),
+    )
+    assert result.returncode == 2, result.stderr
+    *warnings, last = result.stderr.strip().splitlines()
+    assert last.startswith("dpc-mn-service: cannot start: no ONNX model")
+    messages = [json.loads(line)["message"] for line in warnings]
+    assert len(messages) == 2, messages
+    assert "DPC_ENGINE__TOPK" in messages[0] and "DPC_ENGINE__TOP_K?" in messages[0]
+    assert "DPC_SERVR__PORT" in messages[1] and "DPC_SERVER__PORT?" in messages[1]
+    assert all(json.loads(line)["level"] == "warning" for line in warnings)
+
+
+def test_only_unknown_variables_are_warned_about():
+    known = {name: "1" for name in setting_variables()}
+    assert "DPC_SERVER__PORT" in known and "DPC_AUTH" in known and "DPC_ENGINE__TOP_K" in known
+    others = {"PATH": "/bin", "DPC_AUTH__KEYS__somekey": "admin", "dpc_server__port": "1"}
+    assert unknown_variables(known | others) == []
+    warnings = unknown_variables({"DPC_ENGINE__TOPK": "5", "DPC_NOTHING_LIKE_IT": "1"})
+    assert len(warnings) == 2 and "DPC_ENGINE__TOP_K?" in warnings[0]
+    assert warnings[1].endswith("names no setting and is ignored")
+
+
+def test_every_group_is_a_model_of_settings():
+    """setting_variables walks groups of fields; a setting outside a group would be missed."""
+    for info in Settings.model_fields.values():
+        assert issubclass(info.annotation, BaseModel)

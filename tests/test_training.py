@@ -1,9 +1,15 @@
-"""Training end to end on a tiny set, and the export's self-check."""
+"""Training end to end on a tiny set, the export's self-check, and the command line: every flag
+reaches the configuration, and the README's command gives the shipped model's."""
 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
+import re
+import shlex
+import typing
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +19,10 @@ torch = pytest.importorskip("torch")
 
 from service.engine.mapping import Mapper  # noqa: E402
 from training.export import check_parity, export_onnx, load_checkpoint  # noqa: E402
+from training.train import PAPER, config_to_dict, parse_args  # noqa: E402
 from training.train import main as train_main  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture(scope="module")
@@ -83,3 +92,87 @@ def test_export_matches_pytorch_and_carries_its_input_convention(tiny_run, tmp_p
     with torch.no_grad():
         expected = model(torch.from_numpy(cloud)[None])[0].numpy()
     assert np.abs(mapper.map(cloud) - expected).max() < 1e-4
+
+
+def leaves(config, path=()):
+    """``(path, value)`` of every field of a configuration, nested ones flattened."""
+    for item in dataclasses.fields(config):
+        value = getattr(config, item.name)
+        if dataclasses.is_dataclass(value):
+            yield from leaves(value, (*path, item.name))
+        else:
+            yield (*path, item.name), value
+
+
+def other_value(config, path, value):
+    """A value of the field's type that is not its default."""
+    owner = config
+    for name in path[:-1]:
+        owner = getattr(owner, name)
+    kind = typing.get_type_hints(type(owner))[path[-1]]
+    if typing.get_origin(kind) is typing.Literal:
+        return next(choice for choice in typing.get_args(kind) if choice != value)
+    if isinstance(value, bool):
+        return not value
+    if isinstance(value, int | float):
+        return value + 3 if isinstance(value, int) else value + 0.25
+    if isinstance(value, tuple):
+        return (8, 16)
+    return "somewhere/else"  # str, or str | None
+
+
+def as_flags(path, value) -> list[str]:
+    option = "--" + path[-1].replace("_", "-")
+    if isinstance(value, bool):
+        return [option if value else "--no-" + option[2:]]
+    if isinstance(value, tuple):
+        return [option, *map(str, value)]
+    return [option, str(value)]
+
+
+def test_every_flag_reaches_the_configuration():
+    defaults, _ = parse_args([])
+    fields = list(leaves(defaults))
+    assert len(fields) >= 20  # the training, data and model configurations
+    argv, expected = [], {}
+    for path, value in fields:
+        expected[path] = other_value(defaults, path, value)
+        argv += as_flags(path, expected[path])
+    config, resume = parse_args(argv)
+    assert not resume
+    assert dict(leaves(config)) == expected
+    assert parse_args(["--resume"])[1]
+
+
+def test_paper_sets_everything_it_says():
+    config, _ = parse_args(["--paper"])
+    values = {path[-1]: value for path, value in leaves(config)}
+    assert PAPER["shared"] == 1.0 and PAPER["canonical"] is False
+    assert {name: values[name] for name in PAPER} == PAPER
+    # the paper's data with Adam: a flag given with --paper wins
+    config, _ = parse_args(["--paper", "--optimizer", "adam"])
+    assert config.optimizer == "adam" and config.data.shared == 1.0
+    assert config.data.rotations == "paper" and not config.data.canonical
+
+
+def readme_training_command() -> list[str]:
+    """The arguments of the README's ``python -m training.train`` line."""
+    readme = (REPO / "README.md").read_text()
+    lines = [line for line in readme.splitlines() if "-m training.train " in line]
+    assert len(lines) == 1, lines
+    words = shlex.split(lines[0])
+    return words[words.index("training.train") + 1 :]
+
+
+def test_the_readmes_training_command_gives_the_shipped_configuration():
+    """Run as written, the README's command trains with the configuration the manifest records."""
+    manifest = json.loads((REPO / "models" / "manifest.json").read_text())
+    config, resume = parse_args(readme_training_command())
+    assert not resume
+    assert config_to_dict(config) == manifest["training"]
+    # the run was stopped early: the README says after how many epochs
+    trained = manifest["trained_epochs"]
+    readme = (REPO / "README.md").read_text()
+    if trained != config.epochs:
+        assert f'"trained_epochs": {trained}' in readme
+    assert re.search(rf"\b{trained} epochs \(", readme), "the README's epochs and timing"

@@ -8,6 +8,7 @@ its pool, so the network never sees the same points twice.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import trimesh
@@ -23,7 +24,9 @@ PAPER_STEP = np.pi / 24  # the paper's training angles: 0 to pi/2 in pi/24 steps
 class DataConfig:
     points: int = 1024  # points per training cloud
     pool: int = 8192  # surface points sampled per object and epoch
-    rotations: str = "so3"  # "paper": the paper's pi/24 grid about x, y, z; "so3": uniform
+    rotations: Literal["paper", "so3"] = (
+        "so3"  # "paper": the paper's pi/24 grid about x, y, z; "so3": uniform
+    )
     jitter: float = 0.01  # delta of the positive cloud, as a share of the radius
     canonical: bool = True  # rotate inputs into their principal-axes frame first
     shared: float = 0.5  # share of the rotated cloud's points that are the anchor's (paper: 1)

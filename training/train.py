@@ -12,10 +12,15 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
+import inspect
 import json
+import re
 import time
+import typing
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -29,77 +34,103 @@ from training.objects import load_manifest, load_object_meshes, objects_from_fol
 
 @dataclass
 class TrainConfig:
-    out: str = "runs/shipped"
+    out: str = "runs/shipped"  # the run's folder: checkpoint.pt, config.json, log.csv
     manifest: str | None = None  # default: training/objects.json
     mesh_dir: str | None = None  # train on every mesh in a folder instead
-    epochs: int = 100
+    epochs: int = 100  # passes over the objects
     views_per_epoch: int = 8  # clouds of each object per epoch
     batch: int = 16  # the paper's batch size
-    optimizer: str = "adam"  # measured faster than the paper's "sgd" (see README)
+    optimizer: Literal["adam", "sgd"] = (
+        "adam"  # measured faster than the paper's "sgd" (see README)
+    )
     lr: float = 1e-3  # the paper's learning rate, for both optimisers
     momentum: float = 0.9  # SGD only, the paper's
     margin: float = 1.0  # epsilon of eq. (1)
     weight: float = 0.3  # lambda of eq. (3), the paper's
-    seed: int = 0
+    seed: int = 0  # the data's draws and the initial weights
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
 
 
+# --paper: the paper's setting (Sect. 4.A); flags given with it still win
+PAPER = {"rotations": "paper", "canonical": False, "optimizer": "sgd", "shared": 1.0}
+
+
 def parse_args(argv: list[str] | None = None) -> tuple[TrainConfig, bool]:
-    defaults = TrainConfig()
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    for name in ("out", "manifest", "mesh_dir", "optimizer"):
-        parser.add_argument(f"--{name.replace('_', '-')}", default=getattr(defaults, name))
-    for name in ("epochs", "views_per_epoch", "batch", "seed"):
-        parser.add_argument(
-            f"--{name.replace('_', '-')}", type=int, default=getattr(defaults, name)
-        )
-    for name in ("lr", "momentum", "margin", "weight"):
-        parser.add_argument(f"--{name}", type=float, default=getattr(defaults, name))
-    parser.add_argument("--points", type=int, default=defaults.data.points)
-    parser.add_argument("--jitter", type=float, default=defaults.data.jitter)
-    parser.add_argument("--shared", type=float, default=defaults.data.shared)
-    parser.add_argument("--noise", type=float, default=defaults.data.noise)
-    parser.add_argument("--rotations", choices=("paper", "so3"), default=defaults.data.rotations)
-    parser.add_argument(
-        "--canonical",
-        action=argparse.BooleanOptionalAction,
-        default=defaults.data.canonical,
-        help="rotate inputs into their principal-axes frame (--no-canonical: the paper's input)",
+    """The run's configuration and ``--resume`` from the command line.
+
+    One flag per field of ``TrainConfig`` and of its nested ``DataConfig`` and ``ModelConfig``
+    (``--views-per-epoch``, ``--shared``, ``--widths 64 128 256``), so every flag parsed reaches
+    the configuration.
+    """
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    parser.add_argument(
-        "--paper",
-        action="store_true",
-        help="the paper's setting: --rotations paper --no-canonical --optimizer sgd --shared 1",
-    )
+    dests = {}
+    for path, kind, default, comment in config_fields(TrainConfig):
+        dests[path[-1]] = dest = ".".join(path)
+        options = argument_type(kind)
+        if "type" in options:
+            options["metavar"] = path[-1].upper()
+        flag_name = f"--{path[-1].replace('_', '-')}"
+        parser.add_argument(flag_name, dest=dest, default=default, help=comment or "", **options)
+    paper = " ".join(flag(name, value) for name, value in PAPER.items())
+    parser.add_argument("--paper", action="store_true", help=f"the paper's setting: {paper}")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     args = parser.parse_args(argv)
-    if args.paper:
-        args.rotations, args.canonical, args.optimizer = "paper", False, "sgd"
-    data = DataConfig(
-        points=args.points, jitter=args.jitter, rotations=args.rotations, canonical=args.canonical
-    )
-    config = TrainConfig(
-        **{
-            k: getattr(args, k)
-            for k in (
-                "out",
-                "manifest",
-                "mesh_dir",
-                "epochs",
-                "views_per_epoch",
-                "batch",
-                "optimizer",
-                "lr",
-                "momentum",
-                "margin",
-                "weight",
-                "seed",
-            )
-        },
-        data=data,
-    )
-    return config, args.resume
+    if args.paper:  # again, with the paper's values as the defaults: explicit flags win
+        parser.set_defaults(**{dests[name]: value for name, value in PAPER.items()})
+        args = parser.parse_args(argv)
+    values: dict = {}
+    for dest in dests.values():
+        *groups, name = dest.split(".")
+        target = values
+        for group in groups:
+            target = target.setdefault(group, {})
+        target[name] = getattr(args, dest)
+    return config_from_dict(values), args.resume
+
+
+def config_fields(cls: type, path: tuple[str, ...] = ()):
+    """``(path, type, default, comment)`` of every field, nested configurations flattened."""
+    hints = typing.get_type_hints(cls)
+    comments = field_comments(cls)
+    for item in dataclasses.fields(cls):
+        kind = hints[item.name]
+        if dataclasses.is_dataclass(kind):
+            yield from config_fields(kind, (*path, item.name))
+            continue
+        default = item.default
+        if default is dataclasses.MISSING:
+            default = item.default_factory()
+        yield (*path, item.name), kind, default, comments.get(item.name)
+
+
+def field_comments(cls: type) -> dict[str, str]:
+    """The comment on each field's line of the class (``points: int = 1024  # per cloud``)."""
+    line = re.compile(r"^\s+(\w+):[^#]*#\s*(.+)$")
+    return {m[1]: m[2] for m in map(line.match, inspect.getsource(cls).splitlines()) if m}
+
+
+def argument_type(kind) -> dict:
+    """argparse's keywords for a field of this type."""
+    options = [a for a in typing.get_args(kind) if a is not type(None)]
+    if kind is bool:
+        return {"action": argparse.BooleanOptionalAction}
+    if typing.get_origin(kind) is typing.Literal:
+        return {"choices": options}
+    if typing.get_origin(kind) is tuple:
+        return {"type": options[0], "nargs": "+"}
+    return {"type": options[0] if options else kind}  # X | None: an X
+
+
+def flag(name: str, value) -> str:
+    """How a value is given on the command line: ``--shared 1.0``, ``--no-canonical``."""
+    option = name.replace("_", "-")
+    if isinstance(value, bool):
+        return f"--{option}" if value else f"--no-{option}"
+    return f"--{option} {value}"
 
 
 def training_objects(config: TrainConfig):
@@ -122,13 +153,15 @@ def config_to_dict(config: TrainConfig) -> dict:
     return json.loads(json.dumps(asdict(config)))
 
 
-def config_from_dict(values: dict) -> TrainConfig:
-    values = dict(values)
-    data = DataConfig(**values.pop("data"))
-    model = ModelConfig(
-        **{k: tuple(v) if isinstance(v, list) else v for k, v in values.pop("model").items()}
-    )
-    return TrainConfig(**values, data=data, model=model)
+def config_from_dict(values: dict, cls: type = TrainConfig):
+    """A configuration from its dict (a checkpoint's, or the command line's), nested ones too."""
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for name, value in values.items():
+        if dataclasses.is_dataclass(hints.get(name)):
+            value = config_from_dict(value, hints[name])
+        kwargs[name] = tuple(value) if isinstance(value, list) else value
+    return cls(**kwargs)
 
 
 def train(config: TrainConfig, resume: bool = False) -> Path:

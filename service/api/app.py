@@ -19,6 +19,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
+from fastapi_offline import FastAPIOffline
 from prometheus_client import CollectorRegistry, Gauge
 from prometheus_fastapi_instrumentator import Instrumentator
 from starlette.exceptions import HTTPException
@@ -73,7 +74,7 @@ def create_app(
 ) -> FastAPI:
     """The app; ``prepared`` is ``startup.prepare``'s result when the caller already ran it."""
     settings = settings or Settings()
-    app = FastAPI(
+    app = FastAPIOffline(  # /docs and /redoc load Swagger UI and ReDoc from this service
         title="DPC-MN pose service",
         version=VERSION,
         description="Recognise a registered object in a point cloud and estimate its 6-DoF pose.",
@@ -333,6 +334,7 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
         "title": "ReferenceUpload",
         "type": "object",
         "required": ["name", "file"],
+        "additionalProperties": False,
         "properties": {
             "name": name,
             "file": {

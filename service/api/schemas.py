@@ -30,6 +30,8 @@ Points = Annotated[
 class AlignOptions(BaseModel):
     """What ``POST /align`` takes besides the points."""
 
+    model_config = ConfigDict(extra="forbid")  # a misspelt field is a 422, not ignored
+
     candidates: list[ReferenceName] | None = Field(
         None, min_length=1, description="restrict the search to these references"
     )
@@ -60,6 +62,8 @@ class AlignRequest(AlignOptions):
 
 class ReferenceIdentity(BaseModel):
     """What ``POST /references`` takes besides the points."""
+
+    model_config = ConfigDict(extra="forbid")
 
     name: ReferenceName
 

@@ -4,8 +4,9 @@
 with one message that says what to fix: a missing, unreadable or corrupt model file (its
 sha256 against the manifest beside it, when there is one), a seed gallery that does not match
 the manifest, a data directory that cannot be written, a database that is not a gallery or
-was written by a newer version of the service (an older one is migrated). A PostgreSQL server
-that cannot be reached yet is waited for instead. ``python -m service`` turns that into one line
+was written by a newer version of the service (an older one is migrated), a setting naming what
+the engine does not have (``CHOICES``: the hypothesis sources). A PostgreSQL server that cannot
+be reached yet is waited for instead. ``python -m service`` turns that into one line
 on stderr and exit status 2; the app's lifespan calls it too, so an app built in-process
 fails to start the same way. References computed with another model file are not an error:
 the catalog recomputes them from their stored points when the gallery loads.
@@ -13,14 +14,17 @@ the catalog recomputes them from their stored points when the gallery loads.
 
 from __future__ import annotations
 
+import difflib
 import json
 import logging
 import sqlite3
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
 
 import onnxruntime as ort
 
+from service.engine.hypotheses import SOURCES
 from service.engine.mapping import Mapper, file_sha256
 from service.errors import StoreUnavailable
 from service.gallery.sqlite_store import FILENAME
@@ -38,6 +42,7 @@ class StartupError(RuntimeError):
 
 def prepare(settings: Settings) -> tuple[Mapper, GalleryStore]:
     """The loaded model and the open store, after every check."""
+    check_choices(settings)
     model_hash = check_model_files(settings)
     mapper = load_model(settings, model_hash)
     return mapper, open_gallery_store(settings.gallery)
@@ -60,6 +65,53 @@ def open_gallery_store(gallery: GallerySettings) -> GalleryStore:
     except (OSError, sqlite3.Error) as error:
         raise StartupError(f"cannot open the gallery in {gallery.data_dir}: {error}") from None
     return store
+
+
+# Settings whose values are names the engine defines (pydantic checks the Literal ones):
+# (group, field) -> the allowed names, taken from where the engine keeps them
+CHOICES = {("engine", "hypotheses"): SOURCES}
+
+
+def check_choices(settings: Settings) -> None:
+    """Each setting of ``CHOICES`` holds only allowed names (one, or a list of them)."""
+    for (group, field), allowed in CHOICES.items():
+        value = getattr(getattr(settings, group), field)
+        values = (value,) if isinstance(value, str) else value
+        unknown = [v for v in values if v not in allowed]
+        if unknown or not values:
+            variable = f"DPC_{group}__{field}".upper()
+            default = type(getattr(settings, group)).model_fields[field].default
+            example = default if isinstance(default, str) else f"'{json.dumps(list(default))}'"
+            problem = f"{', '.join(map(repr, unknown))} is not allowed" if unknown else "empty"
+            raise StartupError(
+                f"invalid settings: {variable}: {problem}; the allowed values are "
+                f"{', '.join(map(repr, allowed))} (e.g. {variable}={example})"
+            )
+
+
+def unknown_variables(environ: Mapping[str, str]) -> list[str]:
+    """A warning for each ``DPC_`` variable that names no setting (it would be ignored)."""
+    known = setting_variables()
+    warnings = []
+    for name in sorted(environ):
+        upper = name.upper()  # pydantic-settings reads names in any case
+        if not upper.startswith("DPC_") or upper in known:
+            continue
+        if any(upper.startswith(f"{variable}__") for variable in known if "__" in variable):
+            continue  # a key inside a group's value, e.g. DPC_AUTH__KEYS__<key>
+        closest = difflib.get_close_matches(upper, known, n=1)
+        hint = f"; did you mean {closest[0]}?" if closest else ""
+        warnings.append(f"the environment variable {name} names no setting and is ignored{hint}")
+    return warnings
+
+
+def setting_variables() -> list[str]:
+    """Every variable a setting is read from: DPC_<GROUP> (JSON) and DPC_<GROUP>__<FIELD>."""
+    names = []
+    for group, info in Settings.model_fields.items():
+        names.append(f"DPC_{group}".upper())
+        names += [f"DPC_{group}__{field}".upper() for field in info.annotation.model_fields]
+    return names
 
 
 def check_model_files(settings: Settings) -> str:

@@ -15,11 +15,13 @@ from service.api.routes.common import (
     errors,
     invalid,
     json_object,
+    known_fields,
     parse,
     require,
 )
 from service.api.schemas import (
     AlignOptions,
+    AlignRequest,
     AlignResponse,
     AlternativePose,
     CandidateFit,
@@ -90,6 +92,7 @@ def _align(
         points = points_from_raw(body, limits.min_points, limits.max_points)
     else:
         data = json_object(body)
+        known_fields(data, AlignRequest.model_fields)
         options = parse(AlignOptions, {**query, **{k: v for k, v in data.items() if k != "points"}})
         points = validate_points(require(data, "points"), limits.min_points, limits.max_points)
     viewpoint = None if options.viewpoint is None else np.asarray(options.viewpoint, np.float64)

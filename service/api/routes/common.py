@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import difflib
 import json
+from collections.abc import Iterable
 from typing import Any, TypeVar
 
 import orjson
@@ -56,6 +58,22 @@ def parse(model: type[M], data: dict[str, Any]) -> M:
         return model.model_validate(data)
     except ValidationError as error:
         raise RequestValidationError(error.errors(include_url=False)) from None
+
+
+def known_fields(data: Iterable[str], accepted: Iterable[str]) -> None:
+    """A 422 naming each field of ``data`` that is not ``accepted``, and the accepted ones."""
+    accepted = list(accepted)
+    unknown = [name for name in data if name not in accepted]
+    if not unknown:
+        return
+    named = []
+    for name in unknown[:5]:
+        guess = difflib.get_close_matches(name, accepted, n=1)
+        named.append(f"'{name[:64]}'" + (f" (did you mean '{guess[0]}'?)" if guess else ""))
+    raise invalid(
+        f"unknown field{'s' * (len(unknown) > 1)} {', '.join(named)}: the accepted fields are "
+        f"{', '.join(accepted)}"
+    )
 
 
 def require(data: dict[str, Any], key: str) -> Any:

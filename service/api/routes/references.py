@@ -18,6 +18,7 @@ from service.api.routes.common import (
     errors,
     invalid,
     json_object,
+    known_fields,
     parse,
     require,
 )
@@ -25,6 +26,7 @@ from service.api.schemas import (
     ReferenceIdentity,
     ReferenceInfo,
     ReferenceList,
+    ReferenceRequest,
     ReferenceResponse,
     SelfCheck,
 )
@@ -37,6 +39,7 @@ from service.settings import Settings
 router = APIRouter(prefix="/references", tags=["references"])
 
 MULTIPART = "multipart/form-data"
+UPLOAD_FIELDS = ("name", "file")  # the multipart body's fields (ReferenceUpload in the OpenAPI)
 BODY = {
     "required": True,
     "content": {
@@ -69,6 +72,7 @@ async def register(
     if body_kind(request, JSON, MULTIPART) == MULTIPART:
         try:
             async with request.form(max_files=1, max_fields=4) as form:
+                known_fields(form, UPLOAD_FIELDS)
                 name, upload = form.get("name"), form.get("file")
                 if not isinstance(upload, UploadFile):
                     raise invalid("upload the mesh or cloud as a file field", "file")
@@ -102,6 +106,7 @@ def _register(
     self_check_poses: int,
 ) -> tuple[Reference, bool, list[dict] | None]:
     """Validate, read the points, compute and store the reference (in a worker thread)."""
+    known_fields(fields, ReferenceRequest.model_fields)
     identity = parse(ReferenceIdentity, {k: v for k, v in fields.items() if k != "points"})
     if source is None:
         upload = Upload(require(fields, "points"))
