@@ -171,3 +171,22 @@ def test_partial_keeps_the_camera_facing_half(sphere, objects):
     meshes, _, scales = objects
     for case in make_cases("partial", meshes, scales, n_points=512, poses_per_object=2):
         assert 0.2 < case.params["visible_share"] < 0.6
+
+
+def test_sensor_family_is_deterministic_with_a_viewpoint_at_the_camera(objects):
+    pytest.importorskip("open3d", exc_type=ImportError)  # its wheel needs libusb
+    meshes, _, scales = objects
+    first = make_cases("sensor", meshes, scales, seed=2, poses_per_object=2)
+    again = make_cases("sensor", meshes, scales, seed=2, poses_per_object=2)
+    other = make_cases("sensor", meshes, scales, seed=3, poses_per_object=2)
+    assert len(first) == 4
+    for a, b, c in zip(first, again, other, strict=True):
+        np.testing.assert_array_equal(a.points, b.points)
+        assert not np.array_equal(a.rotation, c.rotation)
+        assert a.family == "sensor" and a.params["expected"] == a.object_name
+        assert a.params["viewpoint"] == [0.0, 0.0, 0.0]
+        assert 4.0 <= a.params["distance_scales"] <= 8.0
+        assert 100 < len(a.points) < 20_000
+        centre_distance = np.linalg.norm(a.points.mean(axis=0))  # the near side: a bit closer
+        expected = a.params["distance_scales"] * scales[a.object_name]
+        assert 0.75 * expected < centre_distance < 1.05 * expected
