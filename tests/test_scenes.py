@@ -10,7 +10,22 @@ from scipy.spatial.transform import Rotation
 
 from evaluation.camera import DEFAULT_CAMERA, DEPTH_NOISE_SHARE
 from evaluation.cases import object_scale
-from evaluation.scenes import sensor_view, surface_centroid
+from evaluation.scenes import (
+    CROP_SCALES,
+    JUNK_KINDS,
+    PART,
+    STRAY,
+    STRAY_SHARE,
+    TABLE,
+    junk_cloud,
+    placed,
+    sensor_view,
+    surface_centroid,
+    surface_gap,
+    symmetry_axis,
+    table_scene,
+    turn_about,
+)
 from service.engine.sampling import sample_surface
 
 from .conftest import pybullet_mesh
@@ -112,3 +127,60 @@ def test_the_viewpoint_is_the_camera_at_the_origin(duck):
         u, v = view.pixel
         assert 80 <= u <= 240 and 60 <= v <= 180  # the middle half of the image
         assert np.all(view.points[:, 2] > 0)  # in front of the camera
+
+
+def test_the_part_rests_on_a_table_the_camera_sees_from_above(duck):
+    mesh, scale = duck
+    scene = table_scene(mesh, scale, np.random.default_rng(11))
+    points = scene.points.astype(np.float64)
+    sigma = DEPTH_NOISE_SHARE * np.linalg.norm(points, axis=1)
+    part, table, stray = (scene.source == k for k in (PART, TABLE, STRAY))
+    assert part.sum() > 300 and table.sum() > part.sum()  # the crop holds more table than part
+    in_model = (points[part] - scene.translation) @ scene.rotation
+    assert np.all(distance_to_mesh(mesh, in_model) <= 5 * sigma[part])
+    normal, offset = scene.plane[:3], scene.plane[3]
+    assert np.all(np.abs(points[table] @ normal + offset) <= 5 * sigma[table])
+    # resting: the lowest vertex touches the plane, none goes through it
+    heights = np.asarray(placed(mesh, scene.rotation, scene.translation).vertices) @ normal + offset
+    assert abs(heights.min()) < 1e-6 * scale
+    # the camera (the origin) is above the table, looking down at 30-60° to it
+    assert offset > 0
+    centre = scene.rotation @ surface_centroid(mesh) + scene.translation
+    elevation = np.degrees(np.arcsin(normal @ (-centre / np.linalg.norm(centre))))
+    assert 30 - 1e-6 <= elevation <= 60 + 1e-6
+    # cropped around the part, then 2 % stray points around it
+    assert np.all(np.linalg.norm(points[~stray] - centre, axis=1) <= CROP_SCALES * scale)
+    assert stray.sum() == round(STRAY_SHARE * (~stray).sum())
+    assert np.mean(np.linalg.norm(points[stray] - centre, axis=1) > CROP_SCALES * scale) > 0.2
+    again = table_scene(mesh, scale, np.random.default_rng(11))
+    np.testing.assert_array_equal(scene.points, again.points)
+
+
+def test_junk_is_the_size_asked_for():
+    rng = np.random.default_rng(0)
+    clouds = {kind: junk_cloud(kind, 0.1, 2000, rng) for kind in JUNK_KINDS}
+    for kind, cloud in clouds.items():
+        assert cloud.shape == (2000, 3)
+        radius = np.linalg.norm(cloud - cloud.mean(axis=0), axis=1).max()
+        assert 0.06 < radius < 0.2, kind
+    np.testing.assert_allclose(np.linalg.norm(clouds["sphere-shell"], axis=1), 0.1)
+    assert np.std(clouds["flat-patch"][:, 2]) < 0.02 * np.std(clouds["flat-patch"][:, 0])
+    with pytest.raises(ValueError, match="unknown junk"):
+        junk_cloud("teapot", 0.1, 10, rng)
+
+
+def test_symmetry_axes_of_a_cylinder_a_square_box_and_a_real_part():
+    cylinder = trimesh.creation.cylinder(radius=0.5, height=2.0, sections=64)
+    assert abs(symmetry_axis(cylinder, 0) @ [0, 0, 1]) > 0.99
+    box = trimesh.creation.box((1.0, 1.0, 2.5))
+    assert abs(symmetry_axis(box, 4) @ [0, 0, 1]) > 0.99
+    torus = pybullet_mesh("torus/torus_textured.obj")
+    axis, centre = symmetry_axis(torus, 0), surface_centroid(torus)
+    points, other = sample_surface(torus, 3000, 1), sample_surface(torus, 3000, 2)
+    floor = surface_gap(points, other)
+    for degrees, same in ((37, True), (200, True)):
+        rotation, shift = turn_about(axis, np.radians(degrees), centre)
+        assert (surface_gap(points @ rotation.T + shift, other) < 1.2 * floor) == same
+    tilt = np.cross(axis, [1.0, 0, 0])
+    rotation, shift = turn_about(tilt / np.linalg.norm(tilt), np.radians(60), centre)
+    assert surface_gap(points @ rotation.T + shift, other) > 3 * floor
