@@ -44,6 +44,29 @@ def test_an_oracle_scores_perfectly():
     assert summarize([wrong])["success"] == 0.0
 
 
+def test_answer_cases_cover_every_family_with_millimetres_of_metric_parts_only():
+    pytest.importorskip("open3d", exc_type=ImportError)  # its wheel needs libusb
+    from evaluation.evaluate import QUICK, answer_cases
+
+    meshes = {
+        "mug": pybullet_mesh("objects/mug.obj"),  # metres
+        "diff-shaft": pybullet_mesh("differential/diff_leftshaft.stl"),  # millimetres
+    }
+    foreign = {"duck": pybullet_mesh("duck.obj")}
+    truths = {}
+    for name, mesh in (meshes | foreign).items():
+        points = sample_surface(mesh, 2048, 0).astype(np.float64)
+        truths[name] = Truth(points, object_scale(points), diameter(points), "unseen")
+    symmetric = {"diff-shaft": meshes["diff-shaft"]}
+    cases = answer_cases(QUICK, meshes, foreign, symmetric, truths, seed=0)
+    families = {case.family for case in cases}
+    assert families == {"sensor", "units", "table", "foreign", "junk", "symmetric"}
+    assert {c.object_name for c in cases if c.family == "units"} == {"mug"}
+    assert {c.object_name for c in cases if c.family == "foreign"} == {"duck"}
+    junk_sizes = {c.params["size"] for c in cases if c.family == "junk"}
+    assert junk_sizes <= {truths["mug"].scale, truths["diff-shaft"].scale}  # not the duck's
+
+
 @pytest.mark.slow
 def test_quick_run_writes_the_report(tmp_path: Path):
     pytest.importorskip("cv2")
