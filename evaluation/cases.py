@@ -384,7 +384,8 @@ def make_cases(
         sizes = np.array(sorted(scales.values()))
         for index, kind in itertools.product(range(count), JUNK_KINDS):
             cases.append(_junk_case(kind, sizes, n_points, seed, index))
-    for name, mesh in meshes.items() if family != "junk" else ():
+        meshes = {}
+    for name, mesh in meshes.items():
         scale = scales[name]
         if family in ("paper-poses", "sparse"):
             indices = _paper_pose_indices(name, seed, poses_per_object)

@@ -1,8 +1,13 @@
 """The evaluation of shared/EVALUATION.md: the engine, its ablations and the two baselines on the
 same cases, seen and unseen objects, written to a report.
 
-    python -m evaluation --out docs/evaluation            # the full run (~35 min, 2 cores)
-    python -m evaluation --quick --out /tmp/evaluation    # a few objects (~3 min)
+    python -m evaluation --out docs/evaluation            # the full run (see below)
+    python -m evaluation --quick --out /tmp/evaluation    # a few objects (~1.5 min)
+
+The full run took 22-35 min on 2 shared cores before the sensor, answer and sensor
+side-by-side studies were added; the full plan adds 530 full-gallery cases (417 with a
+viewpoint, run again without it; the 216 sensor views also by the 4 ablations) and 40 sensor
+views against 8 references for each baseline (the run's time not measured yet).
 
 The studies, each on cases built by ``evaluation.cases`` with one seed:
 
@@ -608,7 +613,7 @@ def evaluate(
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="a few objects and cases (~3 min)")
+    parser.add_argument("--quick", action="store_true", help="a few objects and cases (~1.5 min)")
     parser.add_argument("--out", type=Path, default=Path("docs/evaluation"))
     parser.add_argument("--model", type=Path, default=MODELS_DIR / "dpc_mn.onnx")
     parser.add_argument("--gallery", type=Path, default=MODELS_DIR / "gallery.npz")
