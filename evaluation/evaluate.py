@@ -1,18 +1,34 @@
 """The evaluation of shared/EVALUATION.md: the engine, its ablations and the two baselines on the
 same cases, seen and unseen objects, written to a report.
 
-    python -m evaluation --out docs/evaluation            # the full run (~35 min, 2 cores)
-    python -m evaluation --quick --out /tmp/evaluation    # a few objects (~3 min)
+    python -m evaluation --out docs/evaluation            # the full run (see below)
+    python -m evaluation --quick --out /tmp/evaluation    # a few objects (~1.5 min)
 
-Three studies, each on cases built by ``evaluation.cases`` with one seed:
+The full run took 22-35 min on 2 shared cores before the sensor, answer and sensor
+side-by-side studies were added; the full plan adds 530 full-gallery cases (417 with a
+viewpoint, run again without it; the 216 sensor views also by the 4 ablations) and 40 sensor
+views against 8 references for each baseline (the run's time not measured yet).
+
+The studies, each on cases built by ``evaluation.cases`` with one seed:
 
 - ``full-gallery``: the engine (refinement on and off, and the ablations) with the shipped
-  gallery of every seen object plus every unseen object registered as a user would
-  (``evaluation.evaluate_mapping.prepare_engine``), on many cases of every object;
+  gallery of every seen object plus the unseen objects registered as a user would
+  (``evaluation.evaluate_mapping.prepare_engine``) but ``FOREIGN``, kept out of the gallery,
+  on many cases of every object: the full-cloud families, ``sensor`` views, and the families
+  that test knowing when not to answer (``foreign`` on the objects kept out, ``junk``,
+  ``units``, ``table``, ``symmetric`` on ``SYMMETRIC_PARTS``). Cases with a viewpoint are also
+  run without it (``engine-no-viewpoint``); the ablations run on the full clouds and
+  ``sensor`` views only;
 - ``side-by-side``: every system, the baselines included, on a small gallery (a few seen and
   unseen objects; the engine restricted to it with ``candidates``), the same cases for all;
+- ``sensor-side-by-side``: the engine (with and without the viewpoint) and the baselines on
+  ``sensor`` views of a small gallery (the baselines take about a second per reference and
+  query), at least 40 identical cases in the full plan;
 - ``noise``: so3 cases with Gaussian noise of σ = 0 to 4 % of the scale, the engine and the
   baselines on the side-by-side gallery, and the engine on the full gallery.
+
+Every engine answer's verdict, confidence, reasons, points set aside and step timings are
+kept per case (``evaluation.records``).
 
 The default engine is also timed through HTTP (``python -m service`` as a real process) on a
 subset of cases. ``evaluation.report`` writes README.md, results.json and the plots.
@@ -33,16 +49,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from evaluation.cases import Case, make_cases
-from evaluation.metrics import (
-    add_s,
-    alignment_error_normalized,
-    alignment_floor,
-    diameter,
-    geodesic_deg,
-)
-from service.engine.alignment import to_model_frame
+from evaluation.cases import ANSWER_FAMILIES, Case, make_cases, object_scale
+from evaluation.metrics import diameter
+from evaluation.records import NO_ANSWER, Answer, Truth, case_record
 from service.engine.engine import Engine
+from service.engine.sampling import sample_surface
 from service.settings import MODELS_DIR
 from training.objects import ObjectSpec, load_manifest, load_object_meshes
 
@@ -52,8 +63,27 @@ ENGINE_SYSTEMS = {  # name -> Engine.align keyword arguments
     "engine-paper": {"hypotheses": ("paper",)},
     "engine-mapped": {"hypotheses": ("mapped",)},
     "engine-principal-axes": {"hypotheses": ("principal-axes",)},
+    "engine-no-viewpoint": {},  # the default engine, never told the viewpoint
 }
+ABLATIONS = ("engine-no-refine", "engine-paper", "engine-mapped", "engine-principal-axes")
 BASELINES = ("ppf", "fpfh")
+# Unseen objects kept out of the gallery: the foreign family's parts. Two look like registered
+# parts (a block with a round joint; a finger tip beside its finger), two do not.
+FOREIGN = ("xarm-link-5", "pr2-finger-tip", "realsense-d435i", "random-700")
+# units: only parts whose references are in metres. Measured radii: robot links, grippers and
+# household objects 0.03-0.9; the procedural blobs 2-6.4 (no unit stated); the millimetre
+# meshes (the differential's, the WSG50 finger) 16-75.
+METRE_SCALE_MAX = 1.0
+# Registered parts with a rotational symmetry (measured on their meshes: a turn about the axis
+# leaves the surface as a resample does), the order of it: 0 for a revolution. Seen and
+# unseen in turn, so that the first few are a mix.
+SYMMETRIC_PARTS = {
+    "torus": 0,  # seen: a ring
+    "diff-shaft": 0,  # unseen: a stepped shaft
+    "kuka-link-7": 0,  # seen: a flange, round
+    "toy-cylinder": 2,  # unseen: an elliptic cylinder, a can's half turns
+    "lego-brick": 4,  # seen: a square brick with studs, a box's quarter turns
+}
 NOISE_SHARES = (0.0, 0.005, 0.01, 0.02, 0.04)  # σ per coordinate, share of the scale
 REFERENCE_POINTS = 2048
 RAW_TYPE = {"content-type": "application/octet-stream"}
@@ -77,8 +107,19 @@ class Plan:
     noise_objects: int  # noise study: side-by-side objects used (the first few)
     noise_cases: int  # so3 cases per object and noise level
     http_cases: int  # so3 cases sent through HTTP (full gallery)
+    sensor_cases: int  # full gallery, per object: sensor views ...
+    units_cases: int  # ... millimetre cases (each a full cloud and a sensor view)
+    table_cases: int  # ... table scenes
+    foreign_objects: int  # objects of FOREIGN used (all are kept out of the gallery)
+    foreign_cases: int  # per foreign object (each a full cloud and a sensor view)
+    junk_cases: int  # per kind of junk
+    symmetric_objects: int  # parts of SYMMETRIC_PARTS used, seen and unseen in turn
+    symmetric_groups: int  # per symmetric part: poses, each turned about the axis
+    sensor_side_seen: int  # sensor side-by-side gallery: seen and unseen objects
+    sensor_side_unseen: int
+    sensor_side_cases: int  # sensor views per object of that gallery
     keep_shares: tuple[float, ...] = (0.1, 0.3, 0.5, 0.7, 0.9)
-    engine_systems: tuple[str, ...] = tuple(ENGINE_SYSTEMS)
+    engine_systems: tuple[str, ...] = ("engine", *ABLATIONS)
 
 
 FULL = Plan(
@@ -96,6 +137,17 @@ FULL = Plan(
     noise_objects=2,
     noise_cases=1,
     http_cases=40,
+    sensor_cases=4,
+    units_cases=1,
+    table_cases=2,
+    foreign_objects=len(FOREIGN),
+    foreign_cases=3,
+    junk_cases=5,
+    symmetric_objects=len(SYMMETRIC_PARTS),
+    symmetric_groups=2,
+    sensor_side_seen=4,
+    sensor_side_unseen=4,
+    sensor_side_cases=5,
 )
 QUICK = Plan(
     seen=3,
@@ -112,18 +164,19 @@ QUICK = Plan(
     noise_objects=1,
     noise_cases=1,
     http_cases=5,
+    sensor_cases=1,
+    units_cases=1,
+    table_cases=1,
+    foreign_objects=1,
+    foreign_cases=1,
+    junk_cases=1,
+    symmetric_objects=2,
+    symmetric_groups=1,
+    sensor_side_seen=1,
+    sensor_side_unseen=1,
+    sensor_side_cases=1,
     keep_shares=(0.1, 0.5, 0.9),
 )
-
-
-@dataclass
-class Truth:
-    """What the metrics need of one registered object."""
-
-    points: np.ndarray  # the reference cloud, model frame
-    scale: float
-    diameter: float
-    split: str
 
 
 @dataclass
@@ -136,60 +189,15 @@ class Study:
     systems: tuple[str, ...]
 
 
-# --- one case --------------------------------------------------------------------------------
-
-
-def case_record(
-    case: Case,
-    truths: dict[str, Truth],
-    label: str | None,
-    rotation: np.ndarray | None,
-    translation: np.ndarray | None,
-    latency_ms: float,
-) -> dict:
-    """The metrics of one answer. ADD-S and the rotation error are measured on the true object;
-    the alignment error (the service's own figure) on the reference the answer named, beside
-    its floor: the true object's reference at the true pose."""
-    truth = truths[case.object_name]
-    record = {
-        "object": case.object_name,
-        "set": truth.split,
-        "family": case.family,
-        "points": len(case.points),
-        **{k: v for k, v in case.params.items() if k in ("pose_index", "keep_share")},
-        **{k: v for k, v in case.params.items() if k in ("visible_share", "noise_share")},
-        "label": label,
-        "label_ok": label == case.object_name,
-        "latency_ms": latency_ms,
-        "align_err_floor": alignment_floor(
-            to_model_frame(case.points, case.rotation, case.translation), truth.points, truth.scale
-        ),
-        "rot_err_deg": None,
-        "add_s": None,
-        "align_err": None,
-    }
-    if label is None or rotation is None:
-        return record
-    named = truths[label]
-    record["rot_err_deg"] = geodesic_deg(rotation, case.rotation)
-    record["add_s"] = add_s(
-        truth.points, rotation, translation, case.rotation, case.translation, truth.diameter
-    )
-    record["align_err"] = alignment_error_normalized(
-        case.points, named.points, rotation, translation, named.scale
-    )
-    return record
-
-
 # --- the systems -----------------------------------------------------------------------------
 
 
 def engine_runner(engine: Engine, system: str, candidates: list[str] | None) -> Callable:
     options = ENGINE_SYSTEMS[system]
 
-    def run(case: Case):
-        answer = engine.align(case.points, candidates=candidates, **options)
-        return answer.label, answer.rotation, answer.translation
+    def run(case: Case, viewpoint):
+        answer = engine.align(case.points, candidates=candidates, viewpoint=viewpoint, **options)
+        return Answer.of_alignment(answer)
 
     return run
 
@@ -201,24 +209,46 @@ def baseline_runner(system: str, references: dict[str, np.ndarray]) -> Callable:
         from evaluation.baselines.fpfh import FPFHRecognizer as Recognizer
     recognizer = Recognizer(references)
 
-    def run(case: Case):
-        camera = case.params.get("camera")
-        answer = recognizer.align(case.points, None if camera is None else np.asarray(camera))
-        return answer["label"], answer["rotation"], answer["translation"]
+    def run(case: Case, viewpoint):
+        answer = recognizer.align(case.points, viewpoint)
+        return Answer(answer["label"], answer["rotation"], answer["translation"])
 
     return run
 
 
+def case_viewpoint(system: str, case: Case) -> np.ndarray | None:
+    """Where the camera was, for the systems told it: the sensor's viewpoint of a camera-frame
+    cloud, or the partial family's camera (the baselines orient normals toward it)."""
+    if system == "engine-no-viewpoint":
+        return None
+    where = case.params.get("viewpoint")
+    if where is None and system in BASELINES:
+        where = case.params.get("camera")
+    return None if where is None else np.asarray(where, dtype=np.float64)
+
+
+def runs_on(system: str, case: Case) -> bool:
+    """Which cases a system answers: ``engine-no-viewpoint`` those that have a viewpoint (the
+    others it would answer as ``engine``), the ablations the full clouds and sensor views."""
+    if system == "engine-no-viewpoint":
+        return "viewpoint" in case.params
+    if system in ABLATIONS:
+        return case.family not in ANSWER_FAMILIES
+    return True
+
+
 def run_system(run: Callable, system: str, study: Study, truths: dict[str, Truth]) -> list[dict]:
     records = []
-    for index, case in enumerate(tqdm(study.cases, desc=f"{study.name}: {system}", leave=False)):
+    cases = [(index, case) for index, case in enumerate(study.cases) if runs_on(system, case)]
+    for index, case in tqdm(cases, desc=f"{study.name}: {system}", leave=False):
+        viewpoint = case_viewpoint(system, case)
         began = time.perf_counter()
         try:
-            label, rotation, translation = run(case)
+            answer = run(case, viewpoint)
         except RuntimeError:  # a baseline that finds no pose at all: a failed case
-            label, rotation, translation = None, None, None
+            answer = NO_ANSWER
         latency = (time.perf_counter() - began) * 1e3
-        record = case_record(case, truths, label, rotation, translation, latency)
+        record = case_record(case, truths, answer, latency, viewpoint is not None)
         record.update(study=study.name, system=system, case=index)
         records.append(record)
     return records
@@ -238,9 +268,10 @@ def run_study(
             references = {name: truths[name].points for name in study.gallery}
             run = baseline_runner(system, references)
             seconds[f"{system}_build"] = time.perf_counter() - began
-        records.extend(run_system(run, system, study, truths))
+        answered = run_system(run, system, study, truths)
+        records.extend(answered)
         seconds[system] = time.perf_counter() - began
-        log(f"  {study.name}: {system} on {len(study.cases)} cases in {seconds[system]:.0f} s")
+        log(f"  {study.name}: {system} on {len(answered)} cases in {seconds[system]:.0f} s")
     return records, seconds
 
 
@@ -259,6 +290,43 @@ def family_cases(
         if count > 0:
             cases += make_cases(
                 family, meshes, scales, REFERENCE_POINTS, seed, count, keep_shares=keep_shares
+            )
+    return cases
+
+
+def sensor_cases(meshes: dict, truths: dict[str, Truth], seed: int, count: int) -> list[Case]:
+    scales = {name: truths[name].scale for name in meshes}
+    return make_cases("sensor", meshes, scales, REFERENCE_POINTS, seed, count)
+
+
+def answer_cases(
+    plan: Plan,
+    meshes: dict,
+    foreign_meshes: dict,
+    symmetric_meshes: dict,
+    truths: dict[str, Truth],
+    seed: int,
+) -> list[Case]:
+    """The sensor views and the families of knowing when not to answer, for the full gallery:
+    sensor, units (those in metres) and table on ``meshes``, foreign on ``foreign_meshes``
+    (kept out of the gallery), junk the size of the registered parts, symmetric on
+    ``symmetric_meshes``."""
+    scales = {name: truth.scale for name, truth in truths.items()}
+    registered = {name: t.scale for name, t in truths.items() if name not in foreign_meshes}
+    in_metres = {name: m for name, m in meshes.items() if scales[name] < METRE_SCALE_MAX}
+    counts = (
+        ("sensor", meshes, scales, plan.sensor_cases),
+        ("units", in_metres, scales, plan.units_cases),
+        ("table", meshes, scales, plan.table_cases),
+        ("foreign", foreign_meshes, scales, plan.foreign_cases),
+        ("junk", {}, registered, plan.junk_cases),
+        ("symmetric", symmetric_meshes, scales, plan.symmetric_groups),
+    )
+    cases = []
+    for family, chosen, sizes, count in counts:
+        if count > 0:
+            cases += make_cases(
+                family, chosen, sizes, REFERENCE_POINTS, seed, count, orders=SYMMETRIC_PARTS
             )
     return cases
 
@@ -365,12 +433,30 @@ def pick(specs: list[ObjectSpec], count: int | None) -> list[ObjectSpec]:
     return list(specs) if count is None else list(specs[:count])
 
 
+def spread(specs: list[ObjectSpec], count: int) -> list[ObjectSpec]:
+    """``count`` objects spaced evenly through ``specs`` (a mix of its categories)."""
+    if count <= 0:
+        return []
+    indices = np.unique(np.linspace(0, len(specs) - 1, min(count, len(specs))).round())
+    return [specs[int(i)] for i in indices]
+
+
 def build_truths(engine: Engine, split_of: dict[str, str]) -> dict[str, Truth]:
     truths = {}
     for name, split in split_of.items():
         reference = engine.entry(name).reference
         points = np.asarray(reference.points, dtype=np.float64)
         truths[name] = Truth(points, float(reference.scale), diameter(points), split)
+    return truths
+
+
+def foreign_truths(meshes: dict) -> dict[str, Truth]:
+    """What the metrics need of parts kept out of the gallery: their seed-0 reference cloud,
+    as a registration would sample it."""
+    truths = {}
+    for name, mesh in meshes.items():
+        points = sample_surface(mesh, REFERENCE_POINTS, 0).astype(np.float64)
+        truths[name] = Truth(points, object_scale(points), diameter(points), "unseen")
     return truths
 
 
@@ -388,6 +474,8 @@ def evaluate(
     began = time.perf_counter()
     started = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
     seen_all, unseen_all = load_manifest(split="seen"), load_manifest(split="unseen")
+    foreign_all = [s for s in unseen_all if s.name in FOREIGN]
+    unseen_all = [s for s in unseen_all if s.name not in FOREIGN]  # registered at run time
     engine, _ = prepare_engine(model, gallery, unseen_all)
     split_of = {s.name: "seen" for s in seen_all} | {s.name: "unseen" for s in unseen_all}
     split_of = {name: split for name, split in split_of.items() if name in engine.names()}
@@ -396,12 +484,22 @@ def evaluate(
     full_specs = pick(seen_all, plan.seen) + pick(unseen_all, plan.unseen)
     seen_side, unseen_side = seen_all[: plan.baseline_seen], unseen_all[: plan.baseline_unseen]
     side_specs = seen_side + unseen_side
-    meshes = load_object_meshes({s.name: s for s in full_specs + side_specs}.values())
+    sensor_side_specs = spread(seen_all, plan.sensor_side_seen) + spread(
+        unseen_all, plan.sensor_side_unseen
+    )
+    foreign_specs = foreign_all[: plan.foreign_objects]
+    symmetric_specs = [s for s in seen_all + unseen_all if s.name in SYMMETRIC_PARTS]
+    symmetric_specs = sorted(symmetric_specs, key=lambda s: list(SYMMETRIC_PARTS).index(s.name))
+    symmetric_specs = symmetric_specs[: plan.symmetric_objects]
+    every = full_specs + side_specs + sensor_side_specs + foreign_specs + symmetric_specs
+    meshes = load_object_meshes({s.name: s for s in every}.values())
+    truths |= foreign_truths({s.name: meshes[s.name] for s in foreign_specs})
     full_meshes = {s.name: meshes[s.name] for s in full_specs}
     side_meshes = {s.name: meshes[s.name] for s in side_specs}
     # the noise study: the first side-by-side objects, seen and unseen in turn
     interleaved = [s for pair in itertools.zip_longest(seen_side, unseen_side) for s in pair if s]
     noise_meshes = {s.name: meshes[s.name] for s in interleaved[: plan.noise_objects]}
+    sensor_side_meshes = {s.name: meshes[s.name] for s in sensor_side_specs}
 
     log("building the cases ...")
     studies = [
@@ -417,8 +515,16 @@ def evaluate(
                 plan.random_cases,
                 plan.partial_cases,
                 plan.keep_shares,
-            ),  # fmt: skip
-            plan.engine_systems,
+            )  # fmt: skip
+            + answer_cases(
+                plan,
+                full_meshes,
+                {s.name: meshes[s.name] for s in foreign_specs},
+                {s.name: meshes[s.name] for s in symmetric_specs},
+                truths,
+                seed,
+            ),
+            (*plan.engine_systems, "engine-no-viewpoint"),
         ),
         Study(
             "side-by-side",
@@ -434,6 +540,12 @@ def evaluate(
                 plan.keep_shares,
             ),  # fmt: skip
             (*plan.engine_systems, *BASELINES),
+        ),
+        Study(
+            "sensor-side-by-side",
+            list(sensor_side_meshes),
+            sensor_cases(sensor_side_meshes, truths, seed, plan.sensor_side_cases),
+            ("engine", "engine-no-viewpoint", *BASELINES),
         ),
         Study(
             "noise",
@@ -493,6 +605,7 @@ def evaluate(
             for s in studies
         },
         "splits": split_of,
+        "foreign": [spec.name for spec in foreign_specs],
         "http": http_result,
         "records": records,
     }
@@ -500,7 +613,7 @@ def evaluate(
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="a few objects and cases (~3 min)")
+    parser.add_argument("--quick", action="store_true", help="a few objects and cases (~1.5 min)")
     parser.add_argument("--out", type=Path, default=Path("docs/evaluation"))
     parser.add_argument("--model", type=Path, default=MODELS_DIR / "dpc_mn.onnx")
     parser.add_argument("--gallery", type=Path, default=MODELS_DIR / "gallery.npz")

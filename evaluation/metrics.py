@@ -5,11 +5,13 @@ Poses follow ``scene_point = R @ model_point + t`` everywhere.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterable
 
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 from scipy.spatial.distance import pdist
+from scipy.stats import rankdata
 
 from service.engine.alignment import alignment_error
 
@@ -102,7 +104,8 @@ def summarize(records: Iterable[dict]) -> dict:
 
     Each record holds ``label_ok`` (bool), ``add_s``, ``rot_err_deg``, ``align_err``,
     ``align_err_floor`` and ``latency_ms``; a metric that is None or NaN (no pose answered)
-    counts as a failure for success and precise and is left out of the medians.
+    counts as a failure for success and precise and is left out of the medians. Records that
+    say whether the answer was accepted (``accepted``) add ``verdict_summary``'s figures.
     """
     records = list(records)
     n = len(records)
@@ -118,6 +121,7 @@ def summarize(records: Iterable[dict]) -> dict:
         success = label_ok & (add_s_values < SUCCESS_ADD_S)
         precise = label_ok & (add_s_values < PRECISE_ADD_S)
     latency = [v for v in column("latency_ms") if np.isfinite(v)]
+    verdicts = verdict_summary(records) if all("accepted" in r for r in records) else {}
     return {
         "cases": n,
         "accuracy": float(label_ok.mean()),
@@ -129,4 +133,118 @@ def summarize(records: Iterable[dict]) -> dict:
         "median_align_err_floor": _median(column("align_err_floor")),
         "latency_ms_median": float(np.median(latency)) if latency else float("nan"),
         "latency_ms_p95": float(np.percentile(latency, 95)) if latency else float("nan"),
+        **verdicts,
+    }
+
+
+# --- knowing when not to answer --------------------------------------------------------------
+
+CALIBRATION_BINS = 10
+
+
+def _as_bool(values: Iterable) -> np.ndarray:
+    return np.asarray(list(values), dtype=bool)
+
+
+def coverage(accepted: Iterable[bool]) -> float:
+    """Share of cases answered ``"match"``."""
+    accepted = _as_bool(accepted)
+    return float(accepted.mean()) if accepted.size else float("nan")
+
+
+def false_accepts(accepted: Iterable[bool], right: Iterable[bool]) -> float:
+    """Share of cases answered ``"match"`` with a wrong answer. On cases whose right answer
+    is ``no_match`` (no answer can be right there) this is the share answered ``"match"``."""
+    accepted, right = _as_bool(accepted), _as_bool(right)
+    return float((accepted & ~right).mean()) if accepted.size else float("nan")
+
+
+def precision_of_accepted(accepted: Iterable[bool], right: Iterable[bool]) -> float:
+    """Share of the ``"match"`` answers that are right (right label and ADD-S < 0.1)."""
+    accepted, right = _as_bool(accepted), _as_bool(right)
+    return float(right[accepted].mean()) if accepted.any() else float("nan")
+
+
+def _with_confidence(confidence: Iterable, right: Iterable[bool]):
+    """The confidences given (None left out, with its case) and the matching outcomes."""
+    pairs = [(c, r) for c, r in zip(confidence, right, strict=True) if c is not None]
+    values = np.array([float(c) for c, _ in pairs], dtype=np.float64)
+    return values, np.array([bool(r) for _, r in pairs], dtype=bool)
+
+
+def reliability_bins(
+    confidence: Iterable, right: Iterable[bool], bins: int = CALIBRATION_BINS
+) -> list[dict]:
+    """Confidence in ``bins`` equal bins over [0, 1] (the last one closed): per non-empty bin,
+    its bounds, count, mean confidence and share right. Cases without a confidence (None)
+    are left out."""
+    values, outcomes = _with_confidence(confidence, right)
+    index = np.clip((values * bins).astype(int), 0, bins - 1)
+    rows = []
+    for b in range(bins):
+        chosen = index == b
+        if chosen.any():
+            rows.append(
+                {
+                    "low": b / bins,
+                    "high": (b + 1) / bins,
+                    "count": int(chosen.sum()),
+                    "confidence": float(values[chosen].mean()),
+                    "right": float(outcomes[chosen].mean()),
+                }
+            )
+    return rows
+
+
+def expected_calibration_error(
+    confidence: Iterable, right: Iterable[bool], bins: int = CALIBRATION_BINS
+) -> float:
+    """ECE: the gap between mean confidence and share right in each bin, weighted by the bin's
+    share of the cases (None confidences left out; NaN when none is given)."""
+    rows = reliability_bins(confidence, right, bins)
+    total = sum(r["count"] for r in rows)
+    if total == 0:
+        return float("nan")
+    return float(sum(r["count"] * abs(r["confidence"] - r["right"]) for r in rows) / total)
+
+
+def auroc(scores: Iterable, right: Iterable[bool]) -> float:
+    """Area under the ROC curve of ``scores`` separating right (True) from wrong answers: the
+    chance that a right answer scores above a wrong one, ties counting half (Mann-Whitney U
+    from average ranks). None scores are left out; NaN without both kinds of answer."""
+    values, outcomes = _with_confidence(scores, right)
+    positives, negatives = int(outcomes.sum()), int((~outcomes).sum())
+    if positives == 0 or negatives == 0:
+        return float("nan")
+    ranks = rankdata(values)
+    u = ranks[outcomes].sum() - positives * (positives + 1) / 2.0
+    return float(u / (positives * negatives))
+
+
+def symmetric_spread(rotations: Iterable[np.ndarray]) -> float:
+    """The largest geodesic angle (degrees) between two of the answered rotations: 0 when
+    every answer for the same surface is the same pose. NaN with fewer than two."""
+    rotations = [np.asarray(r, dtype=np.float64) for r in rotations if r is not None]
+    if len(rotations) < 2:
+        return float("nan")
+    return max(geodesic_deg(a, b) for a, b in itertools.combinations(rotations, 2))
+
+
+def verdict_summary(records: list[dict]) -> dict:
+    """Whether the answers can be acted on: coverage, false accepts, precision of accepted
+    answers, the share of right outcomes (``outcome_ok``: accepted and right, or a right
+    refusal), calibration (ECE, AUROC of the confidence against success) and the share of
+    answers that gave a confidence. Records hold ``accepted``, ``success``, ``outcome_ok`` and
+    ``confidence`` (None when not given)."""
+    accepted = [bool(r["accepted"]) for r in records]
+    right = [bool(r["success"]) for r in records]
+    confidence = [r.get("confidence") for r in records]
+    return {
+        "coverage": coverage(accepted),
+        "false_accepts": false_accepts(accepted, right),
+        "precision_accepted": precision_of_accepted(accepted, right),
+        "outcome_ok": float(np.mean([bool(r["outcome_ok"]) for r in records])),
+        "ece": expected_calibration_error(confidence, right),
+        "auroc": auroc(confidence, right),
+        "confidence_given": float(np.mean([c is not None for c in confidence])),
     }

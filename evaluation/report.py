@@ -20,6 +20,7 @@ import numpy as np  # noqa: E402
 
 from evaluation.cases import FAMILIES  # noqa: E402
 from evaluation.metrics import PRECISE_ADD_S, SUCCESS_ADD_S, summarize  # noqa: E402
+from evaluation.report_answers import answers_report, plot_reliability, readme_lines  # noqa: E402
 
 SETS = ("seen", "unseen")
 BASELINE_NAMES = {"ppf": "PPF (OpenCV)", "fpfh": "FPFH + RANSAC + ICP (Open3D)"}
@@ -30,6 +31,13 @@ PLOTS = {
     "noise": "success_vs_noise.png",
     "visible": "success_vs_visible_share.png",
     "latency": "latency.png",
+    "reliability": "reliability.png",
+}
+POSE_FAMILIES = tuple(f for f in FAMILIES if f not in ("foreign", "junk"))  # a pose to measure
+TABLE_STUDIES = {  # the studies with per-family tables, and their object sets
+    "side-by-side": SETS,
+    "sensor-side-by-side": (*SETS, "all"),
+    "full-gallery": SETS,
 }
 # The targets, on seen objects with refinement (the full-gallery engine).
 TARGET_PRECISE = 0.95
@@ -263,7 +271,7 @@ def plot_visible(data: dict, path: Path) -> None:
 
 def latency_rows(records: list[dict], http: dict | None) -> list[dict]:
     rows = []
-    for study in ("side-by-side", "full-gallery"):
+    for study in TABLE_STUDIES:
         for system in dict.fromkeys(r["system"] for r in select(records, study=study)):
             s = summarize(select(records, study=study, system=system))
             rows.append(
@@ -385,7 +393,12 @@ def curve_tables(data: dict) -> list[str]:
 
 
 def readme(
-    result: dict, table: dict, goal_rows: list[dict], lat_rows: list[dict], data: dict
+    result: dict,
+    table: dict,
+    goal_rows: list[dict],
+    lat_rows: list[dict],
+    data: dict,
+    answers: dict,
 ) -> str:
     m = result["machine"]
     studies = result["studies"]
@@ -410,6 +423,9 @@ def readme(
         " object plus every unseen object registered at run time)",
         "side-by-side": "every system on the same small gallery (the engine restricted to it"
         " with `candidates`), the same cases",
+        "sensor-side-by-side": "the engine (with and without the viewpoint) and the baselines on"
+        " the same `sensor` views of a small gallery (the baselines take about a second per"
+        " reference and query, which bounds the gallery)",
         "noise": "so3 cases at noise σ = 0, 0.5, 1, 2, 4 % of the scale, on the side-by-side"
         " gallery",
         "noise-full-gallery": "the same noise levels, the engine on the full gallery",
@@ -417,13 +433,14 @@ def readme(
     for name, study in studies.items():
         split_count = defaultdict(int)
         for obj in study["objects"]:
-            split_count[result["splits"][obj]] += 1
+            split_count[result["splits"].get(obj, "kept out")] += 1  # foreign parts, junk
         families = ", ".join(f"{f} {n}" for f, n in study["cases_per_family"].items())
         seconds = result["seconds_per_study"].get(name, {})
         took = sum(v for k, v in seconds.items() if not k.endswith("_build"))
         lines.append(
             f"- **{name}**: {descriptions[name]}. Gallery of {len(study['gallery'])} references;"
-            f" cases on {split_count['seen']} seen + {split_count['unseen']} unseen objects,"
+            f" cases on {split_count['seen']} seen + {split_count['unseen']} unseen objects"
+            f" (+ {split_count['kept out']} foreign parts and kinds of junk),"
             f" {study['cases']} cases ({families}); systems: {', '.join(study['systems'])};"
             f" {took / 60:.1f} min."
         )
@@ -435,7 +452,10 @@ def readme(
             f" `POST /align` (accuracy {_figure(h['accuracy'])})."
         )
     side_gallery = studies.get("side-by-side", {}).get("gallery", [])
-    plan = result["plan"]
+    sensor_gallery = studies.get("sensor-side-by-side", {}).get("gallery", [])
+    foreign = result.get("foreign", [])
+    symmetric = sorted({r["object"] for r in result["records"] if r["family"] == "symmetric"})
+    plan = defaultdict(int, result["plan"])  # a run from before a field was added: 0
     lines += [
         "",
         f"Side-by-side gallery: {', '.join(side_gallery)}. Per object: paper-poses"
@@ -443,13 +463,23 @@ def readme(
         f" × keep shares {list(plan['keep_shares'])}, so3 / noisy / partial"
         f" {plan['baseline_random_cases']} each. Full gallery, per object: paper-poses"
         f" {plan['paper_poses']}, sparse {plan['sparse_poses']} × the keep shares, so3 / noisy"
-        f" {plan['random_cases']}, partial {plan['partial_cases']}. The baselines take seconds"
-        " per query against a few references, which is what bounds their gallery and cases.",
+        f" {plan['random_cases']}, partial {plan['partial_cases']}, sensor"
+        f" {plan['sensor_cases']}, units {plan['units_cases']} (a full cloud and a sensor view"
+        f" each), table {plan['table_cases']}; foreign: {plan['foreign_cases']} full cloud(s) and"
+        f" sensor view(s) of each of {', '.join(foreign) or 'none'} (unseen, kept out of the"
+        f" gallery); junk {plan['junk_cases']} of each kind; symmetric"
+        f" {plan['symmetric_groups']} pose(s) of each of {', '.join(symmetric) or 'none'}, each"
+        f" turned about its axis. Sensor side-by-side gallery: {', '.join(sensor_gallery)},"
+        f" {plan['sensor_side_cases']} sensor view(s) per object. The baselines take seconds per"
+        " query against a few references, which is what bounds their gallery and cases.",
         "",
-        "Systems: `engine` (the default: mapped + principal-axes hypotheses, ICP refinement),"
-        " `engine-no-refine` (refinement off), `engine-paper` (the paper's least squares + SVD"
-        " over the mapped pairs alone), `engine-mapped` (mapped hypotheses alone),"
-        " `engine-principal-axes` (principal axes alone); the ablations refine.",
+        "Systems: `engine` (the default: mapped + principal-axes hypotheses, ICP refinement,"
+        " given the viewpoint of camera-frame clouds), `engine-no-viewpoint` (the same, never"
+        " given it), `engine-no-refine` (refinement off), `engine-paper` (the paper's least"
+        " squares + SVD over the mapped pairs alone), `engine-mapped` (mapped hypotheses alone),"
+        " `engine-principal-axes` (principal axes alone); the ablations refine and run on the"
+        " full clouds and sensor views. The baselines orient normals toward the camera where"
+        " the case has one.",
         "",
         f"Metrics as shared/EVALUATION.md: success = right label and ADD-S < {SUCCESS_ADD_S};"
         f" precise = right label and ADD-S < {PRECISE_ADD_S}; the alignment error is measured on"
@@ -475,10 +505,11 @@ def readme(
             f"| {_label(r['system'])} | {r['study']} | {r['how']} | {r['cases']} "
             f"| {_ms(r['median'])} | {_ms(r['p95'])} |"
         )
-    for study in ("side-by-side", "full-gallery"):
+    lines += [""] + readme_lines(answers)
+    for study, splits in TABLE_STUDIES.items():
         lines += ["", f"## Tables: {study}", ""]
-        for family in FAMILIES:
-            for split in SETS:
+        for family in POSE_FAMILIES:
+            for split in splits:
                 table_lines = family_table(table, study, family, split)
                 if len(table_lines) > 2:
                     lines += [f"### {family}, {split} objects", "", *table_lines, ""]
@@ -503,17 +534,20 @@ def write_report(result: dict, out: Path) -> None:
     plot_noise(data["noise"], out / PLOTS["noise"])
     plot_visible(data["visible"], out / PLOTS["visible"])
     plot_latency(lat_rows, out / PLOTS["latency"])
+    answers = answers_report(records)
+    plot_reliability(answers["calibration"], out / PLOTS["reliability"])
     document = {
         **{k: v for k, v in result.items() if k != "records"},
         "summaries": table,
         "curves": data,
         "targets": goal_rows,
         "latency": lat_rows,
+        "answers": answers,
         "baseline_settings": baseline_settings(),
         "records": records,
     }
     (out / "results.json").write_text(json.dumps(document, indent=1, default=_plain) + "\n")
-    (out / "README.md").write_text(readme(result, table, goal_rows, lat_rows, data))
+    (out / "README.md").write_text(readme(result, table, goal_rows, lat_rows, data, answers))
 
 
 def main(argv: list[str] | None = None) -> None:

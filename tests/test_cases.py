@@ -14,8 +14,10 @@ from scipy.spatial.transform import Rotation
 from evaluation.cases import (
     CAMERA_DISTANCE_SCALES,
     KEEP_SHARES,
+    NO_MATCH,
     NOISE_SCALE_SHARE,
     TRAINING_ANGLE_STEP,
+    UNIT_FACTOR,
     make_cases,
     object_scale,
     paper_poses,
@@ -23,6 +25,7 @@ from evaluation.cases import (
     uniform_rotations,
 )
 from evaluation.metrics import geodesic_deg
+from evaluation.scenes import JUNK_KINDS, surface_gap
 from service.engine.sampling import load_mesh, sample_surface
 
 
@@ -171,3 +174,98 @@ def test_partial_keeps_the_camera_facing_half(sphere, objects):
     meshes, _, scales = objects
     for case in make_cases("partial", meshes, scales, n_points=512, poses_per_object=2):
         assert 0.2 < case.params["visible_share"] < 0.6
+
+
+def test_sensor_family_is_deterministic_with_a_viewpoint_at_the_camera(objects):
+    pytest.importorskip("open3d", exc_type=ImportError)  # its wheel needs libusb
+    meshes, _, scales = objects
+    first = make_cases("sensor", meshes, scales, seed=2, poses_per_object=2)
+    again = make_cases("sensor", meshes, scales, seed=2, poses_per_object=2)
+    other = make_cases("sensor", meshes, scales, seed=3, poses_per_object=2)
+    assert len(first) == 4
+    for a, b, c in zip(first, again, other, strict=True):
+        np.testing.assert_array_equal(a.points, b.points)
+        assert not np.array_equal(a.rotation, c.rotation)
+        assert a.family == "sensor" and a.params["expected"] == a.object_name
+        assert a.params["viewpoint"] == [0.0, 0.0, 0.0]
+        assert 4.0 <= a.params["distance_scales"] <= 8.0
+        assert 100 < len(a.points) < 20_000
+        centre_distance = np.linalg.norm(a.points.mean(axis=0))  # the near side: a bit closer
+        expected = a.params["distance_scales"] * scales[a.object_name]
+        assert 0.75 * expected < centre_distance < 1.05 * expected
+
+
+def test_foreign_and_junk_expect_no_match(objects):
+    pytest.importorskip("open3d", exc_type=ImportError)  # its wheel needs libusb
+    meshes, _, scales = objects
+    foreign = make_cases("foreign", meshes, scales, n_points=256, seed=1, poses_per_object=1)
+    assert [(c.object_name, c.params["view"]) for c in foreign] == [
+        (name, view) for name in meshes for view in ("full", "sensor")
+    ]
+    assert {c.params["expected"] for c in foreign} == {NO_MATCH}
+    assert len(foreign[0].points) == 256 and "viewpoint" in foreign[1].params
+    junk = make_cases("junk", meshes, scales, n_points=300, seed=1, poses_per_object=2)
+    assert len(junk) == 2 * len(JUNK_KINDS)
+    assert {c.params["kind"] for c in junk} == set(JUNK_KINDS)
+    for case in junk:
+        assert case.params["expected"] == NO_MATCH and case.object_name not in meshes
+        assert case.params["size"] in scales.values()  # the size of a registered part
+        spread = np.linalg.norm(case.points - case.points.mean(axis=0), axis=1).max()
+        assert 0.5 * case.params["size"] < spread < 2 * case.params["size"]
+
+
+def test_units_are_millimetres_of_the_same_pose(objects):
+    pytest.importorskip("open3d", exc_type=ImportError)  # its wheel needs libusb
+    meshes, _, scales = objects
+    units = make_cases("units", meshes, scales, n_points=512, seed=4, poses_per_object=1)
+    so3 = make_cases("so3", meshes, scales, n_points=512, seed=4, poses_per_object=1)
+    full = [c for c in units if c.params["view"] == "full"]
+    for mm, metres in zip(full, so3, strict=True):
+        assert mm.params["unit_factor"] == UNIT_FACTOR and mm.params["right_refusal"] == "units"
+        assert mm.params["expected"] == mm.object_name
+        np.testing.assert_array_equal(mm.rotation, metres.rotation)
+        np.testing.assert_allclose(mm.translation, UNIT_FACTOR * metres.translation)
+        distances, _ = cKDTree(metres.points).query(mm.points / UNIT_FACTOR)
+        assert distances.max() < 1e-6 * scales[mm.object_name]
+    for case in (c for c in units if c.params["view"] == "sensor"):
+        centre = np.linalg.norm(case.points.mean(axis=0)) / UNIT_FACTOR
+        assert 3 * scales[case.object_name] < centre < 8 * scales[case.object_name]
+
+
+def test_table_cases_hold_the_part_the_table_and_strays(objects):
+    pytest.importorskip("open3d", exc_type=ImportError)  # its wheel needs libusb
+    meshes, _, scales = objects
+    cases = make_cases("table", {"duck": meshes["duck"]}, scales, seed=1, poses_per_object=2)
+    for case in cases:
+        params = case.params
+        assert params["expected"] == "duck" and params["viewpoint"] == [0.0, 0.0, 0.0]
+        total = params["part_points"] + params["table_points"] + params["stray_points"]
+        assert total == len(case.points) and params["part_points"] > 300
+        assert params["stray_points"] == round(0.02 * (total - params["stray_points"]))
+
+
+def test_symmetric_groups_turn_one_surface_about_its_axis():
+    pytest.importorskip("open3d", exc_type=ImportError)  # its wheel needs libusb
+    meshes = {
+        "torus": pybullet_mesh("torus/torus_textured.obj"),
+        "lego": pybullet_mesh("lego/lego.obj"),
+    }
+    scales = {name: object_scale(sample_surface(m, 2048, 0)) for name, m in meshes.items()}
+    orders = {"torus": 0, "lego": 4}
+    cases = make_cases("symmetric", meshes, scales, 2048, seed=1, poses_per_object=1, orders=orders)
+    groups: dict[str, list] = {}
+    for case in cases:
+        groups.setdefault(case.params["group"], []).append(case)
+    assert sorted(groups) == ["lego/0/full", "lego/0/sensor", "torus/0/full", "torus/0/sensor"]
+    assert len(groups["torus/0/full"]) == 6 and len(groups["lego/0/full"]) == 4
+    for group, members in groups.items():
+        first, mesh = members[0], meshes[members[0].object_name]
+        scale = scales[first.object_name]
+        resampled = sample_surface(mesh, 2048, 5), sample_surface(mesh, 2048, 6)
+        floor = surface_gap(*resampled) / scale  # two samples of one surface at one pose
+        for member in members[1:]:
+            turn = member.params["turn_deg"] % 360
+            angle = geodesic_deg(member.rotation, first.rotation)
+            assert angle == pytest.approx(min(turn, 360 - turn), abs=1e-6)
+            gap = surface_gap(member.points, first.points) / scale  # the same surface
+            assert gap < (1.1 * floor if group.endswith("full") else 0.025), group

@@ -12,9 +12,16 @@ from evaluation.metrics import (
     add_s,
     alignment_error_normalized,
     alignment_floor,
+    auroc,
+    coverage,
     diameter,
+    expected_calibration_error,
+    false_accepts,
     geodesic_deg,
+    precision_of_accepted,
+    reliability_bins,
     summarize,
+    symmetric_spread,
 )
 from service.engine.sampling import sample_surface
 
@@ -133,3 +140,49 @@ def test_summarize_counts_success_precise_and_medians():
     assert summary["latency_ms_median"] == pytest.approx(25.0)
     assert summary["latency_ms_p95"] == pytest.approx(np.percentile([10, 20, 30, 40], 95))
     assert summarize([]) == {"cases": 0}
+
+
+def test_coverage_false_accepts_and_precision_of_accepted_answers():
+    accepted = [True, True, False, True, False]
+    right = [True, False, False, False, True]  # the last: right, but refused
+    assert coverage(accepted) == pytest.approx(0.6)
+    assert false_accepts(accepted, right) == pytest.approx(0.4)  # accepted and wrong
+    assert precision_of_accepted(accepted, right) == pytest.approx(1 / 3)
+    # on no_match cases nothing is right: false accepts are every "match"
+    assert false_accepts([True, False, False, False], [False] * 4) == pytest.approx(0.25)
+    assert np.isnan(precision_of_accepted([False, False], [True, True]))
+
+
+def test_calibration_error_of_hand_made_confidences():
+    confidence = [0.95, 0.95, 0.15, 0.15, None]  # None: no confidence given, left out
+    right = [True, False, False, False, True]
+    # bin 0.9-1.0: mean 0.95, half right: gap 0.45; bin 0.1-0.2: mean 0.15, none right: 0.15
+    assert expected_calibration_error(confidence, right) == pytest.approx((2 * 0.45 + 2 * 0.15) / 4)
+    bins = reliability_bins(confidence, right)
+    assert [(b["low"], b["count"], b["right"]) for b in bins] == [(0.1, 2, 0.0), (0.9, 2, 0.5)]
+    # calibrated: 7 of 10 answers given 0.7 are right; 1.0 lands in the last bin
+    assert expected_calibration_error([0.7] * 10, [True] * 7 + [False] * 3) == pytest.approx(0)
+    assert reliability_bins([1.0], [True])[0]["low"] == pytest.approx(0.9)
+    assert np.isnan(expected_calibration_error([None, None], [True, False]))
+
+
+def test_auroc_of_a_hand_computed_case():
+    # right answers score 0.35 and 0.8, wrong ones 0.1 and 0.4: 3 of the 4 pairs ordered
+    assert auroc([0.1, 0.4, 0.35, 0.8], [False, False, True, True]) == pytest.approx(0.75)
+    assert auroc([0.5, 0.5], [True, False]) == pytest.approx(0.5)  # a tie counts half
+    assert auroc([0.9, 0.2, None], [True, False, False]) == pytest.approx(1.0)
+    assert auroc([0.1, 0.9], [True, False]) == pytest.approx(0.0)
+    assert np.isnan(auroc([0.3, 0.4], [True, True]))
+    rng = np.random.default_rng(0)
+    scores, right = rng.integers(0, 5, 60) / 4, rng.random(60) < 0.5  # many ties
+    pairs = [
+        1.0 if p > n else 0.5 if p == n else 0.0 for p in scores[right] for n in scores[~right]
+    ]
+    assert auroc(scores, right) == pytest.approx(np.mean(pairs))
+
+
+def test_symmetric_spread_is_the_largest_angle_between_answers():
+    answers = [rotation_z(0), rotation_z(10), rotation_z(-20), None]
+    assert symmetric_spread(answers) == pytest.approx(30)
+    assert symmetric_spread([rotation_z(5)] * 3) == pytest.approx(0, abs=1e-5)
+    assert np.isnan(symmetric_spread([rotation_z(5)]))
