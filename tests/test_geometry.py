@@ -9,9 +9,11 @@ from scipy.spatial.transform import Rotation
 
 from service.engine.alignment import alignment_error
 from service.engine.classifier import LinearClassifier, classifier_input
+from service.engine.distance_field import DistanceField
 from service.engine.grid import GRID_SIZE, grid
-from service.engine.icp import icp
+from service.engine.icp import Surface, icp
 from service.engine.normalize import normalize, radius
+from service.engine.normals import estimate_normals
 from service.engine.principal_axes import principal_axes_hypotheses, principal_frame
 from service.engine.registration import kabsch, paper_least_squares, ransac
 
@@ -77,10 +79,14 @@ def test_icp_converges_from_a_small_perturbation(duck_points):
     rotation, translation = random_pose(8)
     scene = duck_points[::2] @ rotation.T + translation
     nudge = Rotation.from_rotvec([0.1, -0.08, 0.05]).as_matrix()
-    offset = 0.05 * radius(duck_points)
-    r, t = icp(scene, duck_points, cKDTree(duck_points), nudge @ rotation, translation + offset)
+    scale = radius(duck_points)
+    tree = cKDTree(duck_points)
+    field = DistanceField.of(duck_points, scale, tree=tree)
+    surface = Surface.of(duck_points, estimate_normals(duck_points, tree=tree), field, tree)
+    start = (nudge @ rotation, translation + 0.05 * scale)
+    r, t, _ = icp(scene, surface, *start, noise=0.002 * scale, gate=0.3 * scale)
     assert angle_deg(r, rotation) < 0.5
-    assert np.linalg.norm(t - translation) < 0.01 * radius(duck_points)
+    assert np.linalg.norm(t - translation) < 0.01 * scale
 
 
 def test_alignment_error_is_zero_at_the_pose_and_grows_off_it(duck_points):

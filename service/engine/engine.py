@@ -92,7 +92,6 @@ class Entry:
     view_features: np.ndarray  # eq. (4)'s input for each augmented full view
     surface: Surface
     views: Views
-    patch: float  # the typical spacing of its points
     symmetry: Symmetry
     # EXPECTED indices of the points each view sees (row K: of all points), drawn once, for
     # coverage; repeated where a view sees fewer
@@ -104,7 +103,6 @@ class Entry:
         tree = cKDTree(points)
         frame = reference.field_frame
         distance_field = DistanceField(frame[:3], float(frame[3]), reference.field)
-        spacing, _ = tree.query(points, k=2)
         visible = reference.visible()
         rng = np.random.default_rng(0)
         expected = np.empty((len(visible) + 1, EXPECTED), dtype=np.uint16)
@@ -119,7 +117,6 @@ class Entry:
             classifier_input(reference.view_grids, blur),
             Surface.of(points, np.asarray(reference.normals, np.float64), distance_field, tree),
             Views.of(points, visible),
-            float(np.median(spacing[:, 1])),
             Symmetry.from_description(reference.symmetry, points.mean(axis=0)),
             expected,
         )
@@ -537,7 +534,6 @@ def size_reason(factor: float) -> str:
 
 
 EXPECTED = 128  # expected-visible points drawn per view for coverage
-SPACINGS = 1.5  # the occupancy's voxel is at least this many observed-point spacings
 QUICK_POINTS = 24  # observed and expected points of the quick look that screens hypotheses
 WHOLE_REFINED = 2  # hypotheses refined in each whole-part pass
 ENOUGH_BEHIND = 0.8  # a hypothesis this far below an excellent refined one is not refined
@@ -561,11 +557,7 @@ class Search:
         self.cheap = observed[subsample(observed, settings.verify_points, rng)]
         self.refine_on = observed[subsample(observed, settings.icp_points, rng)]
         # "is an observed point near here", at the tolerance or the observation's own spacing
-        spacing, _ = cKDTree(observed).query(self.cheap, k=2)
-        voxel = max(
-            settings.tolerance * radius(observed), SPACINGS * float(np.median(spacing[:, 1]))
-        )
-        self.occupancy = Occupancy(observed, voxel)
+        self.occupancy = Occupancy.around(observed, settings.tolerance * radius(observed), rng)
 
     def run(self, planned: dict[int, list[str]], refine: bool, budget: int) -> list[Fit]:
         """Verified fits of every candidate row from its planned sources; the best ``budget``
@@ -601,7 +593,6 @@ class Search:
             made.rotations,
             made.translations,
             tolerance,
-            entry.patch,
             corrected=False,
         )
         expected = self.expected(entry, made, QUICK_POINTS)
@@ -668,7 +659,11 @@ class Search:
         tolerance = settings.tolerance * scale
         observed = self.cheap if count is None else self.refine_on
         fits_ = fit(
-            entry.surface, observed, made.rotations, made.translations, tolerance, entry.patch
+            entry.surface,
+            observed,
+            made.rotations,
+            made.translations,
+            tolerance,
         )
         expected = self.expected(entry, made, count or settings.coverage_points)
         covered = coverage(expected, made.rotations, made.translations, self.occupancy)

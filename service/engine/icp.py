@@ -36,13 +36,15 @@ class Surface:
     normals: np.ndarray  # (N, 3) unit, outward
     field: DistanceField
     neighbours: np.ndarray  # (N, k) each point's nearest others (itself first)
+    spacing: float  # the median distance from a sample to its nearest other
 
     @classmethod
     def of(
         cls, points: np.ndarray, normals: np.ndarray, field: DistanceField, tree: cKDTree
     ) -> Surface:
-        _, neighbours = tree.query(points, k=NEIGHBOURS)
-        return cls(points, normals, field, neighbours.astype(np.intp))
+        distances, neighbours = tree.query(points, k=NEIGHBOURS)
+        spacing = float(np.median(distances[:, 1]))
+        return cls(points, normals, field, neighbours.astype(np.intp), spacing)
 
     def nearest(self, points: np.ndarray) -> np.ndarray:
         """Index of the surface sample nearest each of ``points`` (..., 3): the distance

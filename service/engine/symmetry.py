@@ -38,6 +38,8 @@ ROUND_AXES = 0.1  # the other two spreads (standard deviations) differ by at mos
 MAX_FOLD = 8
 RANDOM_STARTS = 24
 SAME_DEG = 5.0  # two found rotations this close are one
+MAX_GROUP = 60  # the largest discrete group looked for (an icosahedron's)
+DRIFT = 0.1  # share of the scale a refined symmetry may move the sample's centroid (its own error)
 
 
 @dataclass(frozen=True)
@@ -118,10 +120,26 @@ def _best_turn(rotation: np.ndarray, axis: np.ndarray) -> np.ndarray:
     return rotation_vector(a * theta)
 
 
-def _fits(surface: Surface, points: np.ndarray, rotation: np.ndarray, centroid, scale) -> bool:
-    moved = (points - centroid) @ rotation.T + centroid
-    distance, _ = surface_distance(surface, moved, TOLERANCE * scale)
+def _fits(surface: Surface, points: np.ndarray, rotation, translation, scale) -> bool:
+    """Whether the reference moved by (R, t) lies on itself."""
+    distance, _ = surface_distance(surface, points @ rotation.T + translation)
     return bool((distance < TOLERANCE * scale).mean() >= SHARE)
+
+
+def _about(rotation: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The translation of ``rotation`` about ``centre``: t = c - R c."""
+    return centre - rotation @ centre
+
+
+def _fixed_point(transforms: list[tuple[np.ndarray, np.ndarray]], near: np.ndarray) -> np.ndarray:
+    """The point every (R, t) leaves in place, by least squares: (I - R) c = t, stacked; the
+    solution nearest ``near`` where they leave a line (a single axis) in place."""
+    if not transforms:
+        return near
+    system = np.concatenate([np.eye(3) - r for r, _ in transforms])
+    target = np.concatenate([t - (np.eye(3) - r) @ near for r, t in transforms])
+    offset, *_ = np.linalg.lstsq(system, target, rcond=1e-6)
+    return near + offset
 
 
 def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> Symmetry:
@@ -131,18 +149,38 @@ def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> S
     frame = principal_axes(points - centroid)
     spread = np.sqrt(np.maximum(np.var((points - centroid) @ frame, axis=0), 0))
     chosen = points[rng.choice(len(points), size=min(512, len(points)), replace=False)]
+    noise, gate = 0.002 * scale, 0.3 * scale
+
+    def refined(start: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """A start about ``centre`` refined onto the reference itself, if it then fits and
+        still turns about a point near the centroid (a sample's centroid is off by a little)."""
+        rotation, translation, _ = icp(
+            chosen, surface, start, _about(start, centre), noise, gate, iterations=30
+        )
+        drift = np.linalg.norm(rotation @ centroid + translation - centroid)
+        if drift > DRIFT * scale or not _fits(surface, chosen, rotation, translation, scale):
+            return None
+        return rotation, translation
+
     for k in range(3):
         others = [spread[j] for j in range(3) if j != k]
         if abs(others[0] - others[1]) > ROUND_AXES * max(others):
             continue
-        axis = frame[:, k]
+        # a sample's principal axis is off by a degree or so: a quarter turn about it, refined
+        # onto the reference itself, turns about the true axis if there is one
+        quarter = refined(rotation_vector(frame[:, k] * np.pi / 2), centroid)
+        if quarter is None:
+            continue
+        axis = Rotation.from_matrix(quarter[0]).as_rotvec()
+        axis = axis / np.linalg.norm(axis) * np.sign(axis @ frame[:, k])
+        centre = _fixed_point([quarter], centroid)
         turns = [rotation_vector(axis * np.radians(a)) for a in REVOLUTION_ANGLES_DEG]
-        if all(_fits(surface, chosen, turn, centroid, scale) for turn in turns):
-            flip = rotation_vector(np.pi * _perpendicular(axis))
-            rotations = [np.eye(3)] + (
-                [flip] if _fits(surface, chosen, flip, centroid, scale) else []
-            )
-            return Symmetry("revolution", centroid, np.stack(rotations), axis)
+        if all(_fits(surface, chosen, turn, _about(turn, centre), scale) for turn in turns):
+            flip = refined(rotation_vector(np.pi * _perpendicular(axis)), centre)
+            if flip is not None:
+                centre = _fixed_point([quarter, flip], centroid)
+            rotations = [np.eye(3)] + ([flip[0]] if flip is not None else [])
+            return Symmetry("revolution", centre, np.stack(rotations), axis)
 
     starts = []
     for order in permutations(range(3)):
@@ -153,22 +191,29 @@ def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> S
     for k, fold in product(range(3), range(2, MAX_FOLD + 1)):
         starts.append(rotation_vector(frame[:, k] * 2 * np.pi / fold))
     starts += list(Rotation.random(RANDOM_STARTS, random_state=rng).as_matrix())
-    found = [np.eye(3)]
-    noise, gate = 0.002 * scale, 0.3 * scale
+    found: list[tuple[np.ndarray, np.ndarray]] = [(np.eye(3), np.zeros(3))]
+
+    def keep(transform: tuple[np.ndarray, np.ndarray] | None) -> None:
+        if transform is not None and all(
+            _angle_deg(transform[0], other) > SAME_DEG for other, _ in found
+        ):
+            found.append(transform)
+
     for start in starts:
-        rotation, translation, _ = icp(
-            chosen, surface, start, centroid - start @ centroid, noise, gate, iterations=30
-        )
-        # a symmetry about the centroid: the translation must keep the centroid in place
-        if np.linalg.norm(rotation @ centroid + translation - centroid) > TOLERANCE * scale:
-            continue
-        if not _fits(surface, chosen, rotation, centroid, scale):
-            continue
-        if all(_angle_deg(rotation, other) > SAME_DEG for other in found):
-            found.append(rotation)
+        keep(refined(start, centroid))
+    grown = True
+    while grown and len(found) <= MAX_GROUP:  # the group the found ones generate
+        before = len(found)
+        for (r1, t1), (r2, t2) in product(list(found), repeat=2):
+            product_ = (r1 @ r2, r1 @ t2 + t1)
+            if all(_angle_deg(product_[0], other) > SAME_DEG for other, _ in found):
+                if _fits(surface, chosen, *product_, scale):
+                    found.append(product_)
+        grown = len(found) > before
     if len(found) == 1:
         return Symmetry.none(centroid)
-    return Symmetry("discrete", centroid, np.stack(found))
+    centre = _fixed_point(found[1:], centroid)
+    return Symmetry("discrete", centre, np.stack([r for r, _ in found]))
 
 
 def _angle_deg(first: np.ndarray, second: np.ndarray) -> float:

@@ -3,8 +3,8 @@
 Two shares, both in [0, 1], measured in units of the reference's own scale:
 - ``fit``: of the observed points, the share that lie within ``tolerance`` of the reference's
   surface at the pose. Distances come from the distance field: to the tangent plane at the
-  nearest surface sample, once past the sample's own patch (``patch``), so a point between
-  samples is as near as the surface it lies on;
+  nearest surface sample, within that sample's patch, so a point between samples is as near
+  as the surface it lies on;
 - ``coverage``: of the reference points the camera should see at that pose, the share that
   have an observed point within ``tolerance``. Which points are seen comes from the view the
   pose implies: with a viewpoint, the rendered view nearest to the camera's direction in the
@@ -24,15 +24,26 @@ the observed points' voxels and their neighbours, as sorted integer keys.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from service.engine.icp import Surface
 
+SPACINGS = 1.5  # the occupancy's voxel is at least this many observed-point spacings
+PATCH_SPACINGS = 2.5  # a sample's tangent patch reaches this many sample spacings
 NEIGHBOURS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
 OFFSET = 1 << 20  # voxel coordinates are shifted by this to make them non-negative keys
 
 
 class Occupancy:
     """The voxels within one voxel of an observed point, for O(log n) "is a point near" tests."""
+
+    @classmethod
+    def around(cls, observed: np.ndarray, tolerance: float, rng: np.random.Generator) -> Occupancy:
+        """At ``tolerance``, or coarser where the observation is sparser: a voxel of at least
+        ``SPACINGS`` times the median distance between neighbouring observed points."""
+        sample = observed[rng.choice(len(observed), size=min(96, len(observed)), replace=False)]
+        distance, _ = cKDTree(observed).query(sample, k=2)
+        return cls(observed, max(tolerance, SPACINGS * float(np.median(distance[:, 1]))))
 
     def __init__(self, points: np.ndarray, voxel: float):
         self.voxel = float(voxel)
@@ -58,11 +69,14 @@ class Occupancy:
 
 
 def surface_distance(
-    surface: Surface, model_points: np.ndarray, patch: float, corrected: bool = True
+    surface: Surface, model_points: np.ndarray, corrected: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
     """Distance from each point (model frame, any leading shape) to the reference's surface,
     and the index of the nearest surface sample (the distance field's, ``corrected`` among its
-    neighbours or not)."""
+    neighbours or not). A point on the surface lies up to about two spacings from the nearest
+    sample of a random sample, so within ``PATCH_SPACINGS`` spacings only its distance to the
+    tangent plane counts."""
+    patch = PATCH_SPACINGS * surface.spacing
     nearest = surface.nearest(model_points) if corrected else surface.field.lookup(model_points)
     offset = model_points - surface.points[nearest]
     along = np.einsum("...i,...i->...", offset, surface.normals[nearest])
@@ -76,13 +90,12 @@ def fit(
     rotations: np.ndarray,
     translations: np.ndarray,
     tolerance: float,
-    patch: float,
     corrected: bool = True,
 ) -> np.ndarray:
     """(H,) share of ``observed`` (S, 3) within ``tolerance`` of the surface, for each of H poses
     ``scene = R @ model + t``."""
     model = np.einsum("hji,hsj->hsi", rotations, observed[None] - translations[:, None])
-    distance, _ = surface_distance(surface, model, patch, corrected)
+    distance, _ = surface_distance(surface, model, corrected)
     return (distance < tolerance).mean(axis=1)
 
 

@@ -1,0 +1,196 @@
+"""What registration derives of a reference's surface, on constructed parts whose answer is known:
+the distance field, normals, point-to-plane refinement, views, verification and symmetry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from service.engine.distance_field import DistanceField
+from service.engine.icp import Surface, icp
+from service.engine.normalize import radius
+from service.engine.normals import estimate_normals, orient_by_views
+from service.engine.sampling import sample_surface_faces
+from service.engine.symmetry import Symmetry, find_symmetry
+from service.engine.verification import Occupancy, coverage, fit
+from service.engine.views import Views, directions, render, splat_visible
+from service.engine.visibility import visible_points
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(Rotation.from_matrix(a.T @ b).magnitude()))
+
+
+def surface_of(mesh: trimesh.Trimesh, count: int = 2048, from_mesh: bool = True) -> Surface:
+    """A reference's surface as registration builds it, from a mesh or from its cloud alone."""
+    points, faces = sample_surface_faces(mesh, count, 0)
+    points = points.astype(np.float64)
+    scale = radius(points)
+    tree = cKDTree(points)
+    if from_mesh:
+        dense = sample_surface_faces(mesh, 20000, 1)[0].astype(np.float64)
+        visible = render(points, scale, 40, dense, mesh.area)
+        normals = mesh.face_normals[faces]
+    else:
+        visible = render(points, scale, 40)
+        normals = estimate_normals(points, tree=tree)
+    normals = orient_by_views(points, normals, directions(40), visible)
+    return Surface.of(points, normals, DistanceField.of(points, scale, tree=tree), tree)
+
+
+def l_bracket() -> trimesh.Trimesh:
+    """An L-shaped bracket with a hole-free step: plane-rich and without any symmetry."""
+    base = trimesh.creation.box(extents=(0.12, 0.04, 0.01))
+    wall = trimesh.creation.box(extents=(0.01, 0.04, 0.06))
+    wall.apply_translation((-0.055, 0, 0.035))
+    rib = trimesh.creation.box(extents=(0.03, 0.01, 0.02))
+    rib.apply_translation((0.02, 0.015, 0.015))
+    return trimesh.util.concatenate([base, wall, rib])
+
+
+@pytest.fixture(scope="module")
+def bracket() -> Surface:
+    return surface_of(l_bracket())
+
+
+def test_the_distance_field_agrees_with_a_kd_tree_within_half_a_voxel(duck_points):
+    scale = radius(duck_points)
+    field = DistanceField.of(duck_points, scale)
+    rng = np.random.default_rng(0)
+    near = duck_points[rng.integers(0, len(duck_points), 4000)]
+    near = near + rng.normal(scale=0.05 * scale, size=near.shape)
+    exact, _ = cKDTree(duck_points).query(near)
+    looked_up = np.linalg.norm(near - duck_points[field.lookup(near)], axis=1)
+    assert (looked_up >= exact - 1e-12).all()  # it names a real sample: never nearer than it
+    assert np.mean(looked_up - exact <= field.voxel) > 0.99
+    # corrected among the sample's neighbours (as refinement and verification look it up)
+    surface = Surface.of(duck_points, estimate_normals(duck_points), field, cKDTree(duck_points))
+    corrected = np.linalg.norm(near - duck_points[surface.nearest(near)], axis=1)
+    assert np.mean(corrected - exact <= field.voxel / 2) > 0.99
+    assert np.mean(np.isclose(corrected, exact)) > 0.9
+    far = duck_points.mean(axis=0) + np.array([10.0, 0, 0]) * scale  # past the grid's edge
+    index = field.lookup(far[None])[0]
+    assert np.linalg.norm(far - duck_points[index]) >= cKDTree(duck_points).query(far)[0]
+
+
+@pytest.mark.parametrize("from_mesh", [True, False], ids=["mesh", "cloud"])
+def test_normals_of_a_sphere_point_outward(from_mesh):
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    surface = surface_of(sphere, 1024, from_mesh)
+    outward = surface.points / np.linalg.norm(surface.points, axis=1, keepdims=True)
+    cosine = np.einsum("ij,ij->i", surface.normals, outward)
+    assert np.mean(cosine > 0.9) > 0.98
+
+
+def test_point_to_plane_icp_converges_from_ten_degrees_on_a_plane_rich_part(bracket):
+    rng = np.random.default_rng(1)
+    rotation = Rotation.random(random_state=2).as_matrix()
+    translation = np.array([0.3, -0.1, 0.5])
+    mesh = l_bracket()
+    scene = sample_surface_faces(mesh, 800, 7)[0] @ rotation.T + translation  # resampled
+    axis = rng.normal(size=3)
+    start = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.radians(10)).as_matrix()
+    scale = radius(bracket.points)
+    r, t, iterations = icp(
+        scene, bracket, start @ rotation, translation + 0.05 * scale, 1e-3 * scale, 0.3 * scale
+    )
+    assert angle_deg(r, rotation) < 0.1
+    assert np.linalg.norm(t - translation) < 0.002 * scale
+    assert iterations < 20  # it stopped by its convergence test
+
+
+def test_a_cube_seen_along_an_axis_shows_one_face():
+    cube = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    points, faces = sample_surface_faces(cube, 3000, 0)
+    dense = sample_surface_faces(cube, 30000, 1)[0]
+    camera = np.array([0.0, 0.0, 6.0])
+    for seen in (
+        splat_visible(points, dense, camera, np.sqrt(cube.area / len(dense))),
+        visible_points(points, camera),
+    ):
+        top = cube.face_normals[faces][:, 2] > 0.99
+        assert np.mean(seen[top]) > 0.97  # the face towards the camera
+        assert np.mean(seen[~top]) < 0.07  # the sides face away, the bottom is hidden (but
+        # the sides' points next to the top edge, within the test's depth tolerance)
+
+
+def test_a_point_behind_another_is_hidden():
+    wall = trimesh.creation.box(extents=(1.0, 1.0, 0.05))
+    points = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]])  # behind the wall, in front of it
+    dense = sample_surface_faces(wall, 20000, 1)[0]
+    seen = splat_visible(points, dense, np.array([0.0, 0.0, 5.0]), np.sqrt(wall.area / 20000))
+    assert seen.tolist() == [False, True]
+
+
+def test_views_are_spread_over_the_sphere_and_describe_what_each_camera_sees(bracket):
+    ways = directions(100)
+    assert np.allclose(np.linalg.norm(ways, axis=1), 1)
+    assert np.abs(ways.mean(axis=0)).max() < 0.02  # evenly spread: no side favoured
+    visible = render(bracket.points, radius(bracket.points), 12)
+    views = Views.of(bracket.points, visible)
+    assert views.frames.shape == (12, 3, 3) and np.allclose(np.linalg.det(views.frames), 1)
+    for k in range(12):  # a view's centroid lies towards its camera
+        offset = views.centroids[k] - bracket.points.mean(axis=0)
+        assert offset @ views.directions[k] > 0
+
+
+def test_fit_and_coverage_tell_the_right_part_from_a_larger_one():
+    small = surface_of(trimesh.creation.box(extents=(0.05, 0.05, 0.05)), 1024)
+    large = surface_of(trimesh.creation.box(extents=(0.05, 0.05, 0.15)), 1024)
+    scene = sample_surface_faces(trimesh.creation.box(extents=(0.05, 0.05, 0.05)), 600, 3)[0]
+    pose = np.eye(3)[None], np.zeros((1, 3))
+    tolerance = 0.04 * radius(small.points)
+    occupancy = Occupancy.around(scene, tolerance, np.random.default_rng(0))
+    shares = {}
+    for name, surface in (("small", small), ("large", large)):
+        shares[name] = (
+            fit(surface, scene, *pose, tolerance)[0],
+            coverage(surface.points[None, ::4], *pose, occupancy)[0],
+        )
+    assert shares["small"][0] > 0.95 and shares["small"][1] > 0.95
+    assert shares["large"][1] < 0.5  # most of the larger box is not observed
+    assert np.prod(shares["small"]) > 2 * np.prod(shares["large"])
+
+
+def test_a_cube_has_24_rotations():
+    cube = surface_of(trimesh.creation.box(extents=(0.1, 0.1, 0.1)))
+    symmetry = find_symmetry(cube, radius(cube.points), np.random.default_rng(0))
+    assert symmetry.kind == "discrete" and len(symmetry.rotations) == 24
+
+
+def test_a_cylinder_is_a_revolution_and_an_l_bracket_has_none(bracket):
+    cylinder = surface_of(trimesh.creation.cylinder(radius=0.03, height=0.12, sections=64))
+    found = find_symmetry(cylinder, radius(cylinder.points), np.random.default_rng(0))
+    assert found.kind == "revolution"
+    assert abs(found.axis @ np.array([0.0, 0, 1])) > 0.999 and len(found.rotations) == 2
+    none = find_symmetry(bracket, radius(bracket.points), np.random.default_rng(0))
+    assert none.kind == "none"
+
+
+def test_the_canonical_pose_is_one_matrix_for_all_equivalent_poses():
+    box = surface_of(trimesh.creation.box(extents=(0.04, 0.08, 0.12)))
+    symmetry = find_symmetry(box, radius(box.points), np.random.default_rng(0))
+    assert symmetry.kind == "discrete" and len(symmetry.rotations) == 4
+    rotation = Rotation.random(random_state=3).as_matrix()
+    translation = np.array([0.2, 0.1, 0.9])
+    centre = symmetry.centroid
+    answers = []
+    for turn in symmetry.rotations:  # the same surface in the same place, four ways
+        equivalent = rotation @ turn
+        shifted = translation + (rotation - equivalent) @ centre
+        answers.append(symmetry.canonical(equivalent, shifted))
+    for r, t in answers:  # the found turns are estimates: one matrix within a hundredth degree
+        assert angle_deg(r, answers[0][0]) < 0.01
+        assert np.linalg.norm(t - answers[0][1]) < 1e-4
+    axis = np.array([0.0, 0.0, 1.0])
+    turn = Symmetry("revolution", np.zeros(3), np.eye(3)[None], axis)
+    spun = [
+        turn.canonical(rotation @ Rotation.from_rotvec(axis * a).as_matrix(), np.zeros(3))[0]
+        for a in (0.3, 1.7, 4.0)
+    ]
+    assert all(angle_deg(s, spun[0]) < 1e-6 for s in spun)
+    described = Symmetry.from_description(symmetry.describe(), np.zeros(3))
+    assert described.kind == "discrete" and len(described.rotations) == 4
