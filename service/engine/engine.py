@@ -32,6 +32,7 @@ from service.engine.mapping import Mapper
 from service.engine.normalize import normalize, radius, subsample
 from service.engine.normals import estimate_normals, orient_by_views
 from service.engine.reference import Reference
+from service.engine.surroundings import set_aside_surroundings
 from service.engine.symmetry import Symmetry, find_symmetry
 from service.engine.verification import Occupancy, coverage, fit
 from service.engine.views import Views, render
@@ -136,6 +137,20 @@ class Snapshot:
 
 
 @dataclass
+class Query:
+    """What one ``align`` call asked, and its clock."""
+
+    snapshot: Snapshot
+    allowed: np.ndarray  # the classifier rows the caller allows
+    sources: tuple[str, ...]
+    top_k: int | None
+    refine: bool
+    viewpoint: np.ndarray | None
+    rng: np.random.Generator
+    clock: Stopwatch
+
+
+@dataclass
 class Fit:
     """One verified (and perhaps refined) hypothesis of one candidate."""
 
@@ -151,6 +166,11 @@ class Fit:
     @property
     def score(self) -> float:
         return self.fit * self.coverage
+
+
+DIFFERENT_DEG = 10.0  # poses this far apart (symmetry accounted for) are different answers
+ALIKE = 0.9  # ... and fit alike when within this share of the best's fit x coverage
+MAX_ALTERNATIVES = 3
 
 
 class Stopwatch:
@@ -353,13 +373,34 @@ class Engine:
         snapshot, settings = self._snapshot, self.settings
         if not snapshot.entries:
             raise EmptyGallery("no reference is registered: register one with POST /references")
-        allowed = self._candidate_rows(snapshot, candidates)
-        chosen_sources = hypotheses or settings.hypotheses
-        rng = np.random.default_rng(settings.seed)
-        clock = Stopwatch()
+        query = Query(
+            snapshot,
+            self._candidate_rows(snapshot, candidates),
+            hypotheses or settings.hypotheses,
+            top_k,
+            refine,
+            None if viewpoint is None else np.asarray(viewpoint, dtype=np.float64),
+            np.random.default_rng(settings.seed),
+            Stopwatch(),
+        )
         scene = np.asarray(points, dtype=np.float64)
-        viewpoint = None if viewpoint is None else np.asarray(viewpoint, dtype=np.float64)
+        # 0. Set aside the table, stray points and clutter; more than one reading may be tried.
+        readings = set_aside_surroundings(scene, query.rng, query.viewpoint)
+        query.clock.lap("surroundings")
+        answer = None
+        for reading in readings:
+            if answer is not None and answer.fit * answer.coverage >= settings.excellent:
+                break
+            found = self._align_reading(query, reading.points)
+            found.points_set_aside = reading.set_aside
+            if answer is None or found.fit * found.coverage > answer.fit * answer.coverage:
+                answer = found
+        answer.timings_ms = query.clock.total()
+        return answer
 
+    def _align_reading(self, query: Query, scene: np.ndarray) -> Alignment:
+        """Steps 1-8 on one reading of the observation."""
+        snapshot, settings, clock, rng = query.snapshot, self.settings, query.clock, query.rng
         # 1. Normalise: subsample to the network's size (centring, scaling in map()).
         observed = scene[subsample(scene, settings.network_points, rng)]
         size = radius(observed)
@@ -370,38 +411,52 @@ class Engine:
         # 3. Grid and classify (eq. 4) among the references of a plausible size.
         observed_grid = grid(observed_mapped)
         scores = snapshot.classifier.scores(observed_grid)
-        whole = self._plausible(snapshot.scales[allowed], size, settings.size_ratio)
-        shortlist = allowed[whole][np.argsort(-scores[allowed[whole]], kind="stable")]
-        shortlist = shortlist[: top_k or settings.top_k]
+        allowed = query.allowed
+        plausible = allowed[self._plausible(snapshot.scales[allowed], size, settings.size_ratio)]
+        shortlist = plausible[np.argsort(-scores[plausible], kind="stable")]
+        shortlist = shortlist[: query.top_k or settings.top_k]
         clock.lap("classify")
 
         # 4-6. The whole part: hypotheses from its principal axes, verified, the best refined.
-        search = Search(self, snapshot, observed, observed_mapped, viewpoint, rng, clock)
-        whole = [s for s in chosen_sources if s == "principal-axes"]
-        fits = search.run({row: whole for row in shortlist}, refine, WHOLE_REFINED)
-        if "views" in chosen_sources and not excellent(fits, settings):
+        search = Search(self, snapshot, observed, observed_mapped, query.viewpoint, rng, clock)
+        chosen = query.sources
+        whole = [s for s in chosen if s == "principal-axes"]
+        fits = search.run({row: whole for row in shortlist}, query.refine, WHOLE_REFINED)
+        if "views" in chosen and not excellent(fits, settings):
             # 3b-6. Single views: the parts whose rendered views' grids look most like the
             # observation's, and eq. (4)'s; hypotheses from every rendered view of each.
-            rows = [*self._nearest_views(snapshot, observed_grid, size, allowed, top_k)]
+            rows = [*self._nearest_views(snapshot, observed_grid, size, allowed, query.top_k)]
             rows += [row for row in shortlist if row not in rows]
             clock.lap("classify")
             planned = {row: ["views", *(whole if row not in shortlist else [])] for row in rows}
-            fits += search.run(planned, refine, settings.refine_best)
-        paired = [s for s in chosen_sources if s in ("mapped", "paper")]
+            fits += search.run(planned, query.refine, settings.refine_best)
+        paired = [s for s in chosen if s in ("mapped", "paper")]
         if paired and not excellent(fits, settings):
             # 4-6 again with the mapped pairs: what the learned mapping pairs, solved.
-            fits += search.run({row: paired for row in shortlist}, refine, WHOLE_REFINED)
+            fits += search.run({row: paired for row in shortlist}, query.refine, WHOLE_REFINED)
         if not fits:  # nothing of a plausible size: no search over the wrong sizes
-            return self._no_match_by_size(snapshot, allowed, size, scores, clock)
+            return self._no_match_by_size(snapshot, allowed, size, scores)
 
-        # 7. Decide: the best fit x coverage over every candidate and hypothesis.
+        # 7. Decide: the best fit x coverage over every candidate and hypothesis; its
+        # canonical pose among those its symmetry makes equivalent; other poses that fit alike.
         fits.sort(key=lambda f: -f.score)
         winner = fits[0]
-        labels = snapshot.classifier.labels
-        label = labels[winner.row]
+        label = snapshot.classifier.labels[winner.row]
         entry = snapshot.entries[label]
         rotation, translation = entry.symmetry.canonical(winner.rotation, winner.translation)
         runner_up = max((f.score for f in fits if f.row != winner.row), default=0.0)
+        alternatives = []
+        for other in fits[1:]:
+            if other.row != winner.row or not other.refined:
+                continue
+            if entry.symmetry.distance_deg(other.rotation, winner.rotation) <= DIFFERENT_DEG:
+                continue
+            if other.score >= ALIKE * winner.score and len(alternatives) < MAX_ALTERNATIVES:
+                alternatives.append(
+                    AlternativePose(
+                        *entry.symmetry.canonical(other.rotation, other.translation), confidence=0.0
+                    )
+                )
         clock.lap("decide")
 
         # 8. Measure the fit of the winner on every observed point.
@@ -416,7 +471,8 @@ class Engine:
             alignment_error_normalized=error / entry.reference.scale,
             hypothesis=winner.source,
             candidates=search.candidate_fits(fits, scores),
-            timings_ms=clock.total(),
+            ambiguous=bool(alternatives),
+            alternatives=alternatives,
             fit=winner.fit,
             coverage=winner.coverage,
             runner_up=runner_up,
@@ -443,7 +499,7 @@ class Engine:
         count = top_k or settings.view_candidates
         return [int(r) for r in np.argsort(-best_per_row)[:count] if np.isfinite(best_per_row[r])]
 
-    def _no_match_by_size(self, snapshot, allowed, size, scores, clock) -> Alignment:
+    def _no_match_by_size(self, snapshot, allowed, size, scores) -> Alignment:
         """The answer when no reference could give an observation of this size."""
         scales = snapshot.scales[allowed]
         ratio = size / scales
@@ -461,7 +517,6 @@ class Engine:
             alignment_error_normalized=float("nan"),
             hypothesis="none",
             candidates=[],
-            timings_ms=clock.total(),
             verdict="no_match",
             confidence=0.0,
             reasons=reasons,
