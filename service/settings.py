@@ -21,6 +21,7 @@ class ModelSettings(BaseModel):
     path: Path = MODELS_DIR / "dpc_mn.onnx"
     manifest: Path | None = None  # default: manifest.json beside the model file
     gallery: Path = MODELS_DIR / "gallery.npz"  # seeds the database on first start
+    confidence: Path | None = None  # default: confidence.json beside the model file
     intra_op_threads: int = Field(2, ge=1)
     inter_op_threads: int = Field(1, ge=1)
     use_cuda: bool = True  # CUDA execution provider when onnxruntime-gpu and a GPU are present
@@ -45,6 +46,8 @@ class EngineSettings(BaseModel):
     verify_points: int = Field(96, ge=16)  # observed points in the first, cheap check
     coverage_points: int = Field(64, ge=16)  # expected-visible points in the cheap check
     excellent: float = Field(0.9, gt=0, le=1)  # fit x coverage that ends the search early
+    accept: float = Field(0.8, ge=0, le=1)  # confidence of a "match" (min_confidence overrides)
+    reject_below: float = Field(0.2, ge=0, le=1)  # below it "no_match", else "uncertain"
     refine_best: int = Field(4, ge=1)  # hypotheses refined with ICP (at most 2 a part)
     icp_iterations: int = Field(20, ge=1)
     icp_points: int = Field(384, ge=16)
@@ -126,6 +129,12 @@ class Settings(BaseSettings):
     limits: LimitSettings = LimitSettings()
     server: ServerSettings = ServerSettings()
     auth: AuthSettings = AuthSettings()
+
+    @property
+    def confidence_path(self) -> Path:
+        """The confidence calibration: ``model.confidence``, else ``confidence.json`` beside
+        the model."""
+        return self.model.confidence or self.model.path.parent / "confidence.json"
 
     @property
     def manifest_path(self) -> Path:

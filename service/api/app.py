@@ -103,7 +103,8 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         ", ".join(mapper.providers),
     )
     _log_auth(settings)
-    catalog = Catalog(Engine(mapper, settings.engine), store, settings.gallery.max_references)
+    engine = Engine(mapper, settings.engine, startup.load_calibration(settings))
+    catalog = Catalog(engine, store, settings.gallery.max_references)
     app.state.catalog = catalog
     limits = settings.limits
     app.state.limiter = limiter = Limiter(

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import onnxruntime as ort
 
+from service.engine.confidence import Calibration
 from service.engine.hypotheses import SOURCES
 from service.engine.mapping import Mapper, file_sha256
 from service.errors import StoreUnavailable
@@ -184,3 +185,19 @@ def check_data_dir(data_dir: Path) -> None:
 def quiet_onnxruntime() -> None:
     """onnxruntime's own log lines would add to the one-line message of a failed start."""
     ort.set_default_logger_severity(3)
+
+
+def load_calibration(settings: Settings) -> Calibration | None:
+    """The confidence calibration beside the model, None when there is none (every answer is
+    then "uncertain", and the log says why); a file that cannot be read stops the start."""
+    path = settings.confidence_path
+    if not path.exists():
+        log.warning("no confidence calibration at %s: every answer will be 'uncertain'", path)
+        return None
+    try:
+        return Calibration.load(path)
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise StartupError(
+            f"the confidence calibration {path} is unreadable ({error}): restore it from the "
+            "model's release, or refit it with python -m evaluation.calibrate"
+        ) from None

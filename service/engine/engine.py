@@ -21,9 +21,11 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from service.engine import confidence
 from service.engine import hypotheses as sources
 from service.engine.alignment import alignment_error
 from service.engine.classifier import LinearClassifier, classifier_input, view_features, view_gram
+from service.engine.confidence import Calibration
 from service.engine.distance_field import DistanceField
 from service.engine.grid import grid
 from service.engine.hypotheses import Hypotheses
@@ -81,6 +83,10 @@ class Alignment:
     fit: float = 0.0  # share of observed points near the reference's surface at the pose
     coverage: float = 0.0  # share of what the camera should see of it that was observed
     runner_up: float = 0.0  # the best fit x coverage of any other part
+    runner_up_label: str | None = None
+    alike: float = 0.0  # the best fit x coverage of another, non-equivalent pose of the part
+    size_ratio: float = 1.0  # the observed radius over the part's scale
+    points: int = 0  # observed points the answer rests on
 
 
 @dataclass(frozen=True)
@@ -191,9 +197,15 @@ class Stopwatch:
 
 
 class Engine:
-    def __init__(self, mapper: Mapper, settings: EngineSettings | None = None):
+    def __init__(
+        self,
+        mapper: Mapper,
+        settings: EngineSettings | None = None,
+        calibration: Calibration | None = None,
+    ):
         self.mapper = mapper
         self.settings = settings or EngineSettings()
+        self.calibration = calibration
         self._snapshot = Snapshot({}, None)
         self._write_lock = threading.Lock()
 
@@ -395,8 +407,40 @@ class Engine:
             found.points_set_aside = reading.set_aside
             if answer is None or found.fit * found.coverage > answer.fit * answer.coverage:
                 answer = found
+        if answer.verdict != "no_match":  # 9. How far to trust it.
+            self._judge(answer, min_confidence)
         answer.timings_ms = query.clock.total()
         return answer
+
+    def _judge(self, answer: Alignment, min_confidence: float | None) -> None:
+        """Confidence, verdict and reasons of an answer (``service.engine.confidence``)."""
+        settings = self.settings
+        values = confidence.measures(
+            answer.fit,
+            answer.coverage,
+            answer.runner_up,
+            answer.alike,
+            answer.points,
+            answer.size_ratio,
+        )
+        answer.reasons = confidence.reasons(
+            answer.label, values, answer.runner_up_label, answer.ambiguous
+        )
+        if self.calibration is None:
+            answer.verdict, answer.confidence = "uncertain", None
+            answer.reasons.append("no confidence calibration is loaded (confidence.json)")
+            return
+        answer.confidence = self.calibration.confidence(values)
+        for alternative in answer.alternatives:
+            alternative.confidence = answer.confidence
+        threshold = settings.accept if min_confidence is None else min_confidence
+        if answer.confidence >= threshold:
+            answer.verdict, answer.reasons = "match", []
+            return
+        answer.verdict = "no_match" if answer.confidence < settings.reject_below else "uncertain"
+        answer.reasons.append(
+            f"the confidence {answer.confidence:.2f} is below the threshold {threshold:.2f}"
+        )
 
     def _align_reading(self, query: Query, scene: np.ndarray) -> Alignment:
         """Steps 1-8 on one reading of the observation."""
@@ -444,13 +488,17 @@ class Engine:
         label = snapshot.classifier.labels[winner.row]
         entry = snapshot.entries[label]
         rotation, translation = entry.symmetry.canonical(winner.rotation, winner.translation)
-        runner_up = max((f.score for f in fits if f.row != winner.row), default=0.0)
+        others = [f for f in fits if f.row != winner.row]
+        runner_up = max(others, key=lambda f: f.score, default=None)
+        runner_up_label = None if runner_up is None else snapshot.classifier.labels[runner_up.row]
+        alike = 0.0
         alternatives = []
         for other in fits[1:]:
             if other.row != winner.row or not other.refined:
                 continue
             if entry.symmetry.distance_deg(other.rotation, winner.rotation) <= DIFFERENT_DEG:
                 continue
+            alike = max(alike, other.score)
             if other.score >= ALIKE * winner.score and len(alternatives) < MAX_ALTERNATIVES:
                 alternatives.append(
                     AlternativePose(
@@ -475,7 +523,11 @@ class Engine:
             alternatives=alternatives,
             fit=winner.fit,
             coverage=winner.coverage,
-            runner_up=runner_up,
+            runner_up=0.0 if runner_up is None else runner_up.score,
+            runner_up_label=runner_up_label,
+            alike=alike,
+            size_ratio=size / entry.reference.scale,
+            points=len(scene),
         )
 
     def _nearest_views(

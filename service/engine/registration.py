@@ -81,7 +81,9 @@ def ransac(
         if inliers[top] > best_inliers:
             best, best_inliers = (rotations[top], translations[top]), int(inliers[top])
         share = best_inliers / len(scored)
-        if share >= 1 or drawn >= np.log(1 - confidence) / np.log(1 - max(share, 1e-6) ** 3):
+        if share >= 1 or drawn >= np.log(1 - confidence) / np.log(
+            1 - min(max(share, 1e-6), 0.999) ** 3
+        ):
             break
     rotation, translation = best
     mask = ((model @ rotation.T + translation - scene) ** 2).sum(axis=1) < threshold**2

@@ -1,0 +1,189 @@
+"""Fit the engine's confidence (``service.engine.confidence``) and check it on parts never seen.
+
+    python -m evaluation.calibrate                        # writes models/confidence.json
+    python -m evaluation.calibrate --quick --out /tmp/c.json   # a few objects, for a try
+
+The engine (the shipped gallery, the unseen parts registered at run time, the foreign parts of
+``evaluation.evaluate`` kept out) answers cases of the families a cell sends: full clouds
+(so3, noisy, sparse, partial), depth-camera views with and without their viewpoint, views of
+parts on a table, junk; and, so that a good fit of the wrong part is seen as such, every so3
+cloud and sensor view once more with its own part left out of the candidates (its right answer
+is then no match). Each answer's measures and whether it was right (the right part, ADD-S <
+0.1) are kept. A logistic regression over the measures is fitted on the cases of the seen
+objects (and junk) and checked on those of the unseen ones and the foreign parts: expected
+calibration error (10 bins) and AUROC, and at the service's acceptance threshold the share of
+accepted answers that are right and of wrong ones accepted. Answers refused before any search
+(no part of that size) are left out: their confidence is 0 by construction.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import minimize
+from tqdm import tqdm
+
+from evaluation.cases import NO_MATCH, Case, make_cases
+from evaluation.evaluate import FOREIGN
+from evaluation.evaluate_mapping import prepare_engine
+from evaluation.metrics import SUCCESS_ADD_S, add_s, auroc, diameter, expected_calibration_error
+from service.engine import confidence
+from service.engine.confidence import FEATURES, Calibration
+from service.engine.engine import Engine
+from service.settings import MODELS_DIR, EngineSettings
+from training.objects import load_manifest, load_object_meshes
+
+RIDGE = 1e-2  # L2 weight on the standardised features' weights
+
+
+def cases_of(meshes: dict, scales: dict[str, float], per_object: int, seed: int) -> list[Case]:
+    """The families a cell sends, for every object in ``meshes``."""
+    counts = {"so3": per_object, "noisy": 1, "partial": 1, "sensor": 2 * per_object, "table": 1}
+    cases = []
+    for family, count in counts.items():
+        cases += make_cases(family, meshes, scales, 2048, seed, count)
+    cases += make_cases("sparse", meshes, scales, 2048, seed, 1, keep_shares=(0.1, 0.5))
+    return cases
+
+
+def answer(engine: Engine, case: Case, viewpoint: bool, leave_out: bool) -> dict | None:
+    """The measures of the engine's answer to one case and whether it was right."""
+    names = engine.names()
+    candidates = [n for n in names if n != case.object_name] if leave_out else None
+    seen_from = case.params.get("viewpoint") if viewpoint else None
+    found = engine.align(
+        case.points,
+        candidates=candidates,
+        viewpoint=None if seen_from is None else np.asarray(seen_from),
+    )
+    if found.verdict == "no_match" and found.hypothesis == "none":
+        return None  # refused by size before any search
+    right = False
+    if not leave_out and case.params.get("expected") not in (NO_MATCH, None):
+        if found.label == case.object_name:
+            truth = engine.get(case.object_name)
+            points = np.asarray(truth.points, np.float64)
+            error = add_s(
+                points,
+                found.rotation,
+                found.translation,
+                case.rotation,
+                case.translation,
+                diameter(points),
+            )
+            right = error < SUCCESS_ADD_S
+    values = confidence.measures(
+        found.fit, found.coverage, found.runner_up, found.alike, found.points, found.size_ratio
+    )
+    return {"family": case.family, "right": right, "viewpoint": viewpoint} | values
+
+
+def collect(engine: Engine, cases: list[Case], desc: str) -> list[dict]:
+    """Every case's answer: sensor-like ones with and without the viewpoint; so3 and sensor
+    also with their own part left out."""
+    rows = []
+    for case in tqdm(cases, desc=desc, leave=False):
+        runs = [(False, False)]
+        if "viewpoint" in case.params:
+            runs.append((True, False))
+        if case.family in ("so3", "sensor"):
+            runs.append(("viewpoint" in case.params, True))
+        for viewpoint, leave_out in runs:
+            row = answer(engine, case, viewpoint, leave_out)
+            if row is not None:
+                rows.append(row | {"object": case.object_name, "left_out": leave_out})
+    return rows
+
+
+def fit_calibration(rows: list[dict]) -> Calibration:
+    """Logistic regression of rightness on the standardised measures, with a little ridge."""
+    x = np.array([[row[name] for name in FEATURES] for row in rows])
+    y = np.array([row["right"] for row in rows], dtype=np.float64)
+    mean, spread = x.mean(axis=0), np.maximum(x.std(axis=0), 1e-9)
+    z = (x - mean) / spread
+
+    def loss(parameters: np.ndarray) -> tuple[float, np.ndarray]:
+        weights, bias = parameters[:-1], parameters[-1]
+        logits = z @ weights + bias
+        p = 1 / (1 + np.exp(-logits))
+        value = np.mean(np.logaddexp(0, logits) - y * logits) + RIDGE * weights @ weights
+        gradient = np.append(z.T @ (p - y) / len(y) + 2 * RIDGE * weights, np.mean(p - y))
+        return value, gradient
+
+    solved = minimize(loss, np.zeros(len(FEATURES) + 1), jac=True, method="L-BFGS-B")
+    return Calibration(FEATURES, solved.x[:-1], float(solved.x[-1]), mean, spread, {})
+
+
+def judge(calibration: Calibration, rows: list[dict], accept: float) -> dict:
+    """How well the calibration does on ``rows``."""
+    scores = np.array([calibration.confidence(row) for row in rows])
+    right = np.array([row["right"] for row in rows])
+    accepted = scores >= accept
+    return {
+        "answers": len(rows),
+        "right": float(right.mean()),
+        "ece": expected_calibration_error(scores, right),
+        "auroc": auroc(scores, right),
+        "accepted": float(accepted.mean()),
+        "precision_of_accepted": float(right[accepted].mean()) if accepted.any() else None,
+        "wrong_accepted": float(accepted[~right].mean()) if (~right).any() else None,
+        "right_accepted": float(accepted[right].mean()) if right.any() else None,
+    }
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(prog="python -m evaluation.calibrate", description=__doc__)
+    parser.add_argument("--out", type=Path, default=MODELS_DIR / "confidence.json")
+    parser.add_argument("--quick", action="store_true", help="a few objects (a few minutes)")
+    parser.add_argument("--per-object", type=int, default=2, help="so3 clouds per object")
+    parser.add_argument("--seed", type=int, default=7)
+    args = parser.parse_args(argv)
+    began = time.perf_counter()
+    seen, unseen = load_manifest(split="seen"), load_manifest(split="unseen")
+    registered = [s for s in unseen if s.name not in FOREIGN]
+    foreign = [s for s in unseen if s.name in FOREIGN]
+    engine, _ = prepare_engine(MODELS_DIR / "dpc_mn.onnx", MODELS_DIR / "gallery.npz", registered)
+    step = 6 if args.quick else 1
+    fit_meshes = load_object_meshes(seen[::step])
+    check_meshes = load_object_meshes(registered[::step])
+    foreign_meshes = load_object_meshes(foreign[:: max(1, step // 2)])
+    scales = {name: engine.get(name).scale for name in engine.names()}
+    scales |= {
+        name: float(np.linalg.norm(m.vertices - m.vertices.mean(0), axis=1).max())
+        for name, m in foreign_meshes.items()
+    }
+    junk = make_cases("junk", {}, {n: scales[n] for n in engine.names()}, 2048, args.seed, 2)
+    fit_rows = collect(engine, cases_of(fit_meshes, scales, args.per_object, args.seed), "fit")
+    fit_rows += collect(engine, junk, "junk")
+    check_cases = cases_of(check_meshes, scales, args.per_object, args.seed + 1)
+    check_cases += make_cases("foreign", foreign_meshes, scales, 2048, args.seed + 1, 2)
+    check_rows = collect(engine, check_cases, "check")
+    calibration = fit_calibration(fit_rows)
+    accept = EngineSettings().accept
+    about = {
+        "fitted": datetime.now(UTC).isoformat(timespec="seconds"),
+        "command": "python -m evaluation.calibrate" + (" --quick" if args.quick else ""),
+        "model_sha256": engine.mapper.model_hash,
+        "seen_objects": len(fit_meshes),
+        "unseen_objects": len(check_meshes),
+        "foreign_objects": len(foreign_meshes),
+        "fit": judge(calibration, fit_rows, accept),
+        "check": judge(calibration, check_rows, accept),
+        "accept": accept,
+        "seconds": round(time.perf_counter() - began, 1),
+    }
+    calibration = Calibration(*[getattr(calibration, f) for f in ("features", "weights",
+        "bias", "mean", "spread")], about)  # fmt: skip
+    calibration.save(args.out)
+    for part in ("fit", "check"):
+        print(part, about[part])
+    print(f"confidence calibration written to {args.out} in {about['seconds']:.0f} s")
+    return about
+
+
+if __name__ == "__main__":
+    main()

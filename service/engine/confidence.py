@@ -1,0 +1,113 @@
+"""Step 9: how far to trust an answer: a calibrated confidence, a verdict and its reasons.
+
+A robot acts on every answer, so the engine says, besides the label and the pose, the
+probability that both are right (the right part, ADD-S < 0.1 of its diameter). It is a
+logistic regression over a few measures of the answer, each in units of the part's own scale:
+
+- ``fit``: the share of observed points on the part's surface at the answered pose;
+- ``coverage``: the share of what the camera should see of the part that was observed;
+- ``margin``: how much better the part fits than the best other part (fit x coverage);
+- ``alike``: how close the best other pose of the same part comes (0 when none does);
+- ``points``: log10 of the number of observed points;
+- ``size``: log of the observed radius over the part's scale.
+
+Its weights are fitted on the evaluation's cases of the objects the model was trained on and
+checked on parts it never saw (``python -m evaluation.calibrate``), and shipped beside the model
+as ``confidence.json``. The verdict follows: ``match`` at or above the acceptance threshold
+(a setting, or the request's ``min_confidence``), ``no_match`` below ``reject_below``,
+``uncertain`` between; every verdict but ``match`` says why.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+FEATURES = ("fit", "coverage", "margin", "alike", "points", "size")
+
+
+@dataclass(frozen=True)
+class Calibration:
+    features: tuple[str, ...]
+    weights: np.ndarray  # (F,)
+    bias: float
+    mean: np.ndarray  # (F,) the features are standardised with these before the weights
+    spread: np.ndarray  # (F,)
+    about: dict  # what it was fitted on and how well it did, for the record
+
+    @classmethod
+    def load(cls, path: Path) -> Calibration:
+        document = json.loads(Path(path).read_text())
+        unknown = set(document["features"]) - set(FEATURES)
+        if unknown:
+            raise ValueError(f"{path}: features this engine does not measure: {sorted(unknown)}")
+        return cls(
+            tuple(document["features"]),
+            np.asarray(document["weights"], dtype=np.float64),
+            float(document["bias"]),
+            np.asarray(document["mean"], dtype=np.float64),
+            np.asarray(document["spread"], dtype=np.float64),
+            document.get("about", {}),
+        )
+
+    def save(self, path: Path) -> None:
+        document = {
+            "features": list(self.features),
+            "weights": self.weights.tolist(),
+            "bias": self.bias,
+            "mean": self.mean.tolist(),
+            "spread": self.spread.tolist(),
+            "about": self.about,
+        }
+        Path(path).write_text(json.dumps(document, indent=2) + "\n")
+
+    def confidence(self, measures: dict[str, float]) -> float:
+        values = np.array([measures[name] for name in self.features])
+        z = float(((values - self.mean) / self.spread) @ self.weights + self.bias)
+        return float(1.0 / (1.0 + np.exp(-np.clip(z, -50, 50))))
+
+
+def measures(
+    fit: float, coverage: float, runner_up: float, alike: float, points: int, size_ratio: float
+) -> dict[str, float]:
+    """The features of one answer (see the module's docstring)."""
+    score = fit * coverage
+    return {
+        "fit": fit,
+        "coverage": coverage,
+        "margin": score - runner_up,
+        "alike": alike / score if score > 0 else 0.0,
+        "points": float(np.log10(max(points, 1))),
+        "size": float(np.log(max(size_ratio, 1e-9))),
+    }
+
+
+def reasons(
+    label: str, values: dict[str, float], runner_up_label: str | None, ambiguous: bool
+) -> list[str]:
+    """Short sentences on what makes an answer doubtful, and what the caller can change."""
+    said = []
+    if values["fit"] < 0.8:
+        said.append(
+            f"only {values['fit']:.0%} of the observed points lie on {label}'s surface at the "
+            "answered pose: the cloud may show another part, or more than the part"
+        )
+    if values["coverage"] < 0.7:
+        said.append(
+            f"only {values['coverage']:.0%} of what the camera should see of {label} was "
+            "observed: the part may be occluded, or it is not this part"
+        )
+    if runner_up_label is not None and values["margin"] < 0.1:
+        said.append(
+            f"{runner_up_label} fits almost as well: restrict the search with candidates if "
+            "the cell knows which part to expect"
+        )
+    if ambiguous:
+        said.append(
+            "other poses, not related by the part's symmetry, fit alike (see alternatives): "
+            "another viewpoint would tell them apart"
+        )
+    return said
