@@ -55,7 +55,7 @@ class EngineSettings(BaseModel):
     partial_views: float = Field(0.0, ge=0, le=1)  # share of them seen by a single camera
     classifier_ridge: float = Field(1e-3, gt=0)
     grid_blur: float = Field(2.0, ge=0)  # Gaussian smoothing of grids before eq. (4), in bins
-    mesh_surface_points: int = Field(20000, ge=1000)  # a mesh's dense sample for its views
+    mesh_surface_points: int = Field(12000, ge=1000)  # a mesh's dense sample for its views
     seed: int = 0
 
 

@@ -161,10 +161,13 @@ def test_register_replace_and_delete(api):
     assert body["name"] == "box-a" and body["num_points"] == len(points)
     radius = np.linalg.norm(points - points.mean(axis=0), axis=1).max()
     assert body["scale"] == pytest.approx(radius, rel=1e-5)
-    assert len(body["self_check"]) == 2
-    assert {"rotation_error_deg", "alignment_error_normalized", "label_ok"} <= set(
+    assert [check["render"] for check in body["self_check"]] == ["full", "view", "view"]
+    assert {"rotation_error_deg", "alignment_error_normalized", "label_ok", "verdict"} <= set(
         body["self_check"][0]
     )
+    # a box's symmetry: the check reports it, the description shows it
+    assert body["symmetry"]["kind"] == "discrete" and len(body["symmetry"]["rotations"]) == 4
+    assert any("symmetry" in warning for warning in body["warnings"])
 
     again = api.post("/references", json={"name": "box-a", "points": points.tolist()})
     assert again.status_code == 409 and "box-a" in detail(again)

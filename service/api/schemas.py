@@ -113,13 +113,18 @@ class AlignResponse(BaseModel):
 
 
 class SelfCheck(BaseModel):
-    """One pose of the registration self-check: the new reference moved and aligned back."""
+    """One render of the registration check: an independent resample of the new part (a full
+    cloud, or one camera's view of it) in a random pose, aligned against the whole gallery."""
 
     model_config = ConfigDict(extra="allow")
 
-    rotation_error_deg: float
-    alignment_error_normalized: float
+    render: Literal["full", "view"]
+    label: str = Field(description="what the gallery answered")
     label_ok: bool
+    rotation_error_deg: float = Field(description="from the true rotation, symmetry accounted")
+    alignment_error_normalized: float
+    verdict: str
+    confidence: float | None
 
 
 class ReferenceInfo(BaseModel):
@@ -129,11 +134,24 @@ class ReferenceInfo(BaseModel):
     points_sha256: str = Field(
         description="sha256 of the stored points as little-endian float32 x y z triples"
     )
+    symmetry: dict = Field(
+        description='the rotations that leave the part as it is: {"kind": "none"}, '
+        '{"kind": "revolution", "axis": [x, y, z], "flip": bool, "centre": [x, y, z]} or '
+        '{"kind": "discrete", "rotations": [3x3, ...], "centre": [x, y, z]}; /align answers '
+        "the equivalent pose whose rotation is nearest the identity"
+    )
 
 
 class ReferenceResponse(ReferenceInfo):
     self_check: list[SelfCheck] | None = Field(
-        None, description="registration only: how well the reference aligns with itself"
+        None,
+        description="registration only: independent renders of the new part (a full cloud "
+        "and single views) aligned against the whole gallery",
+    )
+    warnings: list[str] = Field(
+        default_factory=list,
+        description="what the check found that an operator should know: renders answered as "
+        "another part, poses off by more than 5 degrees, a symmetry",
     )
 
 

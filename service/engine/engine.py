@@ -37,7 +37,7 @@ from service.engine.reference import Reference
 from service.engine.surroundings import set_aside_surroundings
 from service.engine.symmetry import Symmetry, find_symmetry
 from service.engine.verification import Occupancy, coverage, fit
-from service.engine.views import Views, render
+from service.engine.views import CAMERA_DISTANCE, Views, render, sample_spacing, splat_visible
 from service.engine.visibility import random_camera, visible_points
 from service.errors import EmptyGallery, UnknownReference
 from service.settings import EngineSettings
@@ -174,6 +174,7 @@ class Fit:
         return self.fit * self.coverage
 
 
+VIEW_POINTS = 512  # a rendered view's grid is made of at most this many of its points
 DIFFERENT_DEG = 10.0  # poses this far apart (symmetry accounted for) are different answers
 ALIKE = 0.9  # ... and fit alike when within this share of the best's fit x coverage
 MAX_ALTERNATIVES = 3
@@ -257,7 +258,7 @@ class Engine:
         normals = orient_by_views(points, normals, views.directions, visible)
         distance_field = DistanceField.of(points, reference.scale, tree=tree)
         surface_model = Surface.of(points, normals, distance_field, tree)
-        grids = np.stack([grid(self.map(points[seen])) for seen in visible])
+        grids = np.stack([grid(self.map(points[seen][:VIEW_POINTS])) for seen in visible])
         symmetry = find_symmetry(surface_model, reference.scale, np.random.default_rng(0))
         return reference.with_(
             normals=normals.astype(np.float32),
@@ -408,11 +409,11 @@ class Engine:
             if answer is None or found.fit * found.coverage > answer.fit * answer.coverage:
                 answer = found
         if answer.verdict != "no_match":  # 9. How far to trust it.
-            self._judge(answer, min_confidence)
+            self._judge(answer, min_confidence, query)
         answer.timings_ms = query.clock.total()
         return answer
 
-    def _judge(self, answer: Alignment, min_confidence: float | None) -> None:
+    def _judge(self, answer: Alignment, min_confidence: float | None, query: Query) -> None:
         """Confidence, verdict and reasons of an answer (``service.engine.confidence``)."""
         settings = self.settings
         values = confidence.measures(
@@ -441,6 +442,12 @@ class Engine:
         answer.reasons.append(
             f"the confidence {answer.confidence:.2f} is below the threshold {threshold:.2f}"
         )
+        size = answer.size_ratio * query.snapshot.entries[answer.label].reference.scale
+        for factor in UNIT_FACTORS:  # would the cloud fit a reference in other units?
+            scales = query.snapshot.scales[query.allowed]
+            if self._plausible(scales, size / factor, self.settings.size_ratio).any():
+                answer.reasons.append(size_reason(factor, also=True))
+                break
 
     def _align_reading(self, query: Query, scene: np.ndarray) -> Alignment:
         """Steps 1-8 on one reading of the observation."""
@@ -479,7 +486,7 @@ class Engine:
             # 4-6 again with the mapped pairs: what the learned mapping pairs, solved.
             fits += search.run({row: paired for row in shortlist}, query.refine, WHOLE_REFINED)
         if not fits:  # nothing of a plausible size: no search over the wrong sizes
-            return self._no_match_by_size(snapshot, allowed, size, scores)
+            return self._no_match_by_size(snapshot, allowed, observed, scores)
 
         # 7. Decide: the best fit x coverage over every candidate and hypothesis; its
         # canonical pose among those its symmetry makes equivalent; other poses that fit alike.
@@ -551,27 +558,32 @@ class Engine:
         count = top_k or settings.view_candidates
         return [int(r) for r in np.argsort(-best_per_row)[:count] if np.isfinite(best_per_row[r])]
 
-    def _no_match_by_size(self, snapshot, allowed, size, scores) -> Alignment:
-        """The answer when no reference could give an observation of this size."""
-        scales = snapshot.scales[allowed]
-        ratio = size / scales
+    def _no_match_by_size(self, snapshot, allowed, observed, scores) -> Alignment:
+        """The answer when no reference could give an observation of this size: no match, the
+        reason naming the likely unit, and for diagnosis the nearest-sized reference placed at
+        the observation's centroid."""
+        size = radius(observed)
+        ratio = size / snapshot.scales[allowed]
         nearest = int(np.argmin(np.abs(np.log(ratio))))
-        factor = float(ratio[nearest])
         row = int(allowed[nearest])
         label = snapshot.classifier.labels[row]
-        reasons = [size_reason(factor)]
+        entry = snapshot.entries[label]
+        translation = observed.mean(axis=0) - entry.surface.points.mean(axis=0)
+        error = alignment_error(observed, entry.point_tree, np.eye(3), translation)
         return Alignment(
             label=label,
             score=float(scores[row]),
             rotation=np.eye(3),
-            translation=np.zeros(3),
-            alignment_error=float("nan"),
-            alignment_error_normalized=float("nan"),
+            translation=translation,
+            alignment_error=error,
+            alignment_error_normalized=error / entry.reference.scale,
             hypothesis="none",
             candidates=[],
             verdict="no_match",
             confidence=0.0,
-            reasons=reasons,
+            reasons=[size_reason(float(ratio[nearest]))],
+            size_ratio=float(ratio[nearest]),
+            points=len(observed),
         )
 
     @staticmethod
@@ -595,22 +607,55 @@ class Engine:
             raise UnknownReference(f"unknown candidate reference(s): {', '.join(unknown)}")
         return np.array(sorted({labels.index(name) for name in candidates}))
 
-    def self_check(self, reference: Reference, poses: int = 3) -> list[dict]:
-        """Align the reference against a few random poses of itself, as an operator would."""
+    def self_check(
+        self, reference: Reference, views: int = 3, mesh: trimesh.Trimesh | None = None
+    ) -> list[dict]:
+        """The new reference found again, as a cell would meet it: a resampled full cloud and
+        ``views`` single-camera views of it, each in a random pose, against the whole gallery.
+        They are independent of the registered points: a mesh is sampled anew; a cloud's points
+        are jittered by a third of their spacing and a fifth of them dropped. A view is what a
+        camera 6 scales away sees of that sample (the mesh's depth buffer, or hidden-point
+        removal), and the camera's place is its viewpoint. Each check says what was answered
+        and how far its rotation is from the truth, the part's symmetry accounted for."""
         rng = np.random.default_rng(self.settings.seed + 1)
+        entry = Entry.of(reference, self.settings.grid_blur)
+        points = np.asarray(reference.points, dtype=np.float64)
+        if mesh is not None:
+            sample = np.asarray(trimesh.sample.sample_surface(mesh, len(points), seed=7)[0])
+            surface = np.asarray(
+                trimesh.sample.sample_surface(mesh, self.settings.mesh_surface_points, seed=8)[0]
+            )
+        else:
+            kept = rng.random(len(points)) >= 0.2
+            sample = points[kept] + rng.normal(
+                scale=entry.surface.spacing / 3, size=(kept.sum(), 3)
+            )
+            surface = None
+        centroid = sample.mean(axis=0)
+        renders: list[tuple[str, np.ndarray, np.ndarray | None]] = [("full", sample, None)]
+        for direction in Rotation.random(views, random_state=rng).apply([0.0, 0.0, 1.0]):
+            camera = centroid + direction * CAMERA_DISTANCE * reference.scale
+            if surface is None:
+                seen = visible_points(sample, camera)
+            else:
+                seen = splat_visible(sample, surface, camera, sample_spacing(surface, mesh.area))
+            renders.append(("view", sample[seen], camera))
         checks = []
-        for _ in range(poses):
+        for kind, cloud, camera in renders:
             rotation = Rotation.random(random_state=rng).as_matrix()
             translation = rng.uniform(-1, 1, 3) * reference.scale
-            chosen = subsample(reference.points, self.settings.network_points, rng)
-            scene = reference.points[chosen] @ rotation.T + translation
-            result = self.align(scene)
-            error = np.clip((np.trace(result.rotation.T @ rotation) - 1) / 2, -1, 1)
+            scene = cloud @ rotation.T + translation
+            viewpoint = None if camera is None else rotation @ camera + translation
+            result = self.align(scene, viewpoint=viewpoint)
             checks.append(
                 {
+                    "render": kind,
+                    "label": result.label,
                     "label_ok": result.label == reference.name,
-                    "rotation_error_deg": float(np.degrees(np.arccos(error))),
+                    "rotation_error_deg": entry.symmetry.distance_deg(result.rotation, rotation),
                     "alignment_error_normalized": result.alignment_error_normalized,
+                    "verdict": result.verdict,
+                    "confidence": result.confidence,
                 }
             )
         return checks
@@ -621,18 +666,28 @@ def excellent(fits: list[Fit], settings: EngineSettings) -> bool:
     return any(f.score >= settings.excellent for f in fits)
 
 
-def size_reason(factor: float) -> str:
-    """Why an observation of ``factor`` times the nearest reference's size matches nothing."""
+UNIT_FACTORS = (1000.0, 0.001, 100.0, 0.01)  # millimetres, metres, centimetres, metres
+
+
+def size_reason(factor: float, also: bool = False) -> str:
+    """Why an observation of ``factor`` times the nearest reference's size matches nothing;
+    with ``also``: it fitted no part of its own size, but ``factor`` times smaller (or larger)
+    it would be a registered part's size."""
     for unit_factor, unit in ((1000.0, "millimetres"), (100.0, "centimetres")):
-        if 0.5 * unit_factor <= factor <= 2 * unit_factor:
+        for ratio, other in ((unit_factor, "metres"), (1 / unit_factor, unit)):
+            if not 0.5 * ratio <= factor <= 2 * ratio:
+                continue
+            small, big = (unit, "metres") if ratio > 1 else ("metres", unit)
+            times = f"{factor:,.0f} times" if ratio > 1 else f"1/{1 / factor:,.0f} of"
+            if also:
+                scaled = f"1/{factor:,.0f} of" if ratio > 1 else f"{1 / factor:,.0f} times"
+                return (
+                    f"at {scaled} its size the cloud would be a registered part's size: it may "
+                    f"be in {small} while the references are in {big}; send {other}"
+                )
             return (
-                f"the cloud is about {factor:,.0f} times the size of the nearest reference: "
-                f"it is probably in {unit} while the references are in metres; send metres"
-            )
-        if 0.5 / unit_factor <= factor <= 2 / unit_factor:
-            return (
-                f"the cloud is about 1/{1 / factor:,.0f} of the size of the nearest reference: "
-                f"the references are probably in {unit}; send the cloud in their units"
+                f"the cloud is {times} the size of the nearest reference: it is probably in "
+                f"{small} while the references are in {big}; send {other}"
             )
     return (
         f"no registered part has this size: the cloud's radius is {factor:.2g} times the "

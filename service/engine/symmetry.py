@@ -36,8 +36,9 @@ SHARE = 0.95  # of the moved points within the tolerance
 REVOLUTION_ANGLES_DEG = (37.0, 101.0, 163.0, 229.0, 293.0)
 ROUND_AXES = 0.1  # the other two spreads (standard deviations) differ by at most this share
 MAX_FOLD = 8
-RANDOM_STARTS = 24
+RANDOM_STARTS = 12
 SAME_DEG = 5.0  # two found rotations this close are one
+QUICK, QUICK_POINTS = 8, 128  # the first refinement of a start: iterations, points
 MAX_GROUP = 60  # the largest discrete group looked for (an icosahedron's)
 DRIFT = 0.1  # share of the scale a refined symmetry may move the sample's centroid (its own error)
 
@@ -153,10 +154,16 @@ def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> S
 
     def refined(start: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """A start about ``centre`` refined onto the reference itself, if it then fits and
-        still turns about a point near the centroid (a sample's centroid is off by a little)."""
+        still turns about a point near the centroid (a sample's centroid is off by a little).
+        A few iterations on a few points first: most starts of most parts lead nowhere."""
         rotation, translation, _ = icp(
-            chosen, surface, start, _about(start, centre), noise, gate, iterations=30
+            chosen[:QUICK_POINTS], surface, start, _about(start, centre), noise, gate, QUICK
         )
+        moved = chosen[:QUICK_POINTS] @ rotation.T + translation
+        near, _ = surface_distance(surface, moved)
+        if np.mean(near < 3 * TOLERANCE * scale) < SHARE:
+            return None
+        rotation, translation, _ = icp(chosen, surface, rotation, translation, noise, gate, 30)
         drift = np.linalg.norm(rotation @ centroid + translation - centroid)
         if drift > DRIFT * scale or not _fits(surface, chosen, rotation, translation, scale):
             return None

@@ -134,7 +134,9 @@ class Catalog:
                 self._restore(name, previous)
                 raise
             self._held[name] = checksum
-        checks = self.engine.self_check(reference, self_check_poses) if self_check_poses else None
+        checks = (
+            self.engine.self_check(reference, self_check_poses, mesh) if self_check_poses else None
+        )
         memory.release_free_heap()
         return reference, not existed, checks
 

@@ -93,6 +93,7 @@ async def register(
     return ReferenceResponse(
         **_info(reference).model_dump(),
         self_check=None if checks is None else [SelfCheck.model_validate(c) for c in checks],
+        warnings=warnings(reference, checks),
     )
 
 
@@ -174,4 +175,34 @@ def _info(reference: Reference) -> ReferenceInfo:
         num_points=len(reference.points),
         scale=float(reference.scale),
         points_sha256=reference.points_sha256,
+        symmetry=reference.symmetry or {"kind": "none"},
     )
+
+
+def warnings(reference: Reference, checks: list[dict] | None) -> list[str]:
+    """What the registration check found that an operator should know."""
+    said = []
+    if checks:
+        confused: dict[str, int] = {}
+        for check in checks:
+            if not check["label_ok"]:
+                confused[check["label"]] = confused.get(check["label"], 0) + 1
+        for other, count in confused.items():
+            said.append(
+                f"{count} of {len(checks)} renders of {reference.name} were answered as {other}: "
+                "the two look alike; restrict alignments with candidates where you can"
+            )
+        off = [c for c in checks if c["label_ok"] and c["rotation_error_deg"] > 5]
+        if off:
+            worst = max(c["rotation_error_deg"] for c in off)
+            said.append(
+                f"{len(off)} of {len(checks)} renders were posed more than 5 degrees off (up to "
+                f"{worst:.0f}): poses of this part may be ambiguous from some sides"
+            )
+    kind = (reference.symmetry or {}).get("kind", "none")
+    if kind != "none":
+        said.append(
+            f"{reference.name} has a {kind} symmetry: /align answers one canonical pose "
+            "among the poses it makes equivalent"
+        )
+    return said
