@@ -154,7 +154,7 @@ def test_the_store_is_seeded_from_the_shipped_gallery(api, seeded):
 
 
 def test_register_replace_and_delete(api):
-    points = box_points()
+    points = box_points(2048)
     created = api.post("/references", json={"name": "box-a", "points": points.tolist()})
     assert created.status_code == 201, created.text
     body = created.json()

@@ -12,7 +12,7 @@ carry the reference onto itself:
   them (n = 2 to 8) and a few random rotations (a box: 4, a cube: 24, a hexagonal nut: 12);
 - ``none``: only the identity fits.
 "Fits" means that at least ``SHARE`` of the moved points lie within ``TOLERANCE`` of the
-reference's surface.
+reference's surface (or half a sample spacing, for a sparse one).
 
 Among poses the symmetry makes equivalent (``R S`` with the translation that keeps the scene
 in place), ``canonical`` answers the one whose rotation is nearest the identity (the largest
@@ -32,6 +32,7 @@ from service.engine.principal_axes import principal_axes
 from service.engine.verification import surface_distance
 
 TOLERANCE = 0.015  # share of the scale
+SPACINGS = 0.5  # or this many sample spacings, if more
 SHARE = 0.95  # of the moved points within the tolerance
 REVOLUTION_ANGLES_DEG = (37.0, 101.0, 163.0, 229.0, 293.0)
 ROUND_AXES = 0.1  # the other two spreads (standard deviations) differ by at most this share
@@ -122,9 +123,14 @@ def _best_turn(rotation: np.ndarray, axis: np.ndarray) -> np.ndarray:
 
 
 def _fits(surface: Surface, points: np.ndarray, rotation, translation, scale) -> bool:
-    """Whether the reference moved by (R, t) lies on itself."""
+    """Whether the reference moved by (R, t) lies on itself: within the tolerance, or within
+    half a sample spacing where the samples are sparser (their normals are rougher)."""
     distance, _ = surface_distance(surface, points @ rotation.T + translation)
-    return bool((distance < TOLERANCE * scale).mean() >= SHARE)
+    return bool((distance < _tolerance(surface, scale)).mean() >= SHARE)
+
+
+def _tolerance(surface: Surface, scale: float) -> float:
+    return max(TOLERANCE * scale, SPACINGS * surface.spacing)
 
 
 def _about(rotation: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -161,7 +167,7 @@ def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> S
         )
         moved = chosen[:QUICK_POINTS] @ rotation.T + translation
         near, _ = surface_distance(surface, moved)
-        if np.mean(near < 3 * TOLERANCE * scale) < SHARE:
+        if np.mean(near < 3 * _tolerance(surface, scale)) < SHARE:
             return None
         rotation, translation, _ = icp(chosen, surface, rotation, translation, noise, gate, 30)
         drift = np.linalg.norm(rotation @ centroid + translation - centroid)
