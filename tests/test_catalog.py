@@ -78,7 +78,7 @@ def test_a_reference_without_a_field_is_recomputed(replicas, mapper):
     assert b.sync() == 1  # a replica running: recomputed for itself, the row left alone
     assert b.engine.get("old").view_grids.shape == (2, 64, 64)
     (record,) = b.store.load_records()
-    assert record.missing == ("view_grids",)
+    assert "view_grids" in record.missing  # and the fields derived at registration
 
     restarted = catalog_on(a.store, mapper)  # a start: recomputed and written back
     assert restarted.engine.get("old").view_grids.shape == (2, 64, 64)

@@ -59,10 +59,13 @@ def test_the_engine_keeps_its_gram_through_many_changes():
     rng = np.random.default_rng(2)
     engine = Engine(Mapper(MODEL.path), EngineSettings(grid_blur=1.0))
 
+    # one real reference's geometry (views, distance field, ...) under every name; the
+    # classifier's full-view grids, what this test is about, drawn at random for each
+    template = engine.make_reference("template", rng.normal(size=(64, 3)).astype(np.float32))
+
     def reference(name: str) -> Reference:
-        points = rng.normal(size=(64, 3)).astype(np.float32)
         views = rng.random((int(rng.integers(2, 6)), GRID_SIZE, GRID_SIZE)).astype(np.float32)
-        return Reference(name, points, points[:, :2].copy(), views, 1.0)
+        return template.with_(name=name, view_grids=views)
 
     engine.load([reference(f"seed-{i}") for i in range(5)])
     names = [f"seed-{i}" for i in range(5)]

@@ -7,11 +7,15 @@ import asyncio
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from evaluation.served import seed_store
 from service.api.limiter import Abandoned, Busy, Job, Limiter, TimedOut
+from service.engine.engine import Engine
+from service.engine.mapping import Mapper
 from service.settings import GallerySettings, LimitSettings, Settings
 from tests.servers import MODEL, ThreadServer
 
@@ -152,9 +156,13 @@ def cloud(count: int, seed: int = 0) -> np.ndarray:
     return (rng.normal(size=(count, 3)) * [0.1, 0.2, 0.3]).astype(np.float32)
 
 
-@pytest.fixture(scope="module")
-def limited(tmp_path_factory):
-    data_dir = tmp_path_factory.mktemp("limited")
+def limited_server(data_dir: Path, budget_s: float) -> ThreadServer:
+    """One alignment at a time, a short queue, the request budget given; the gallery holds one
+    reference, ``base``, written into its store before it starts (a registration computes
+    views, a distance field and a symmetry: longer than a tight budget on a busy machine)."""
+    engine = Engine(Mapper(MODEL.path, use_cuda=False))
+    base = engine.make_reference("base", cloud(400))
+    seed_store(data_dir, [base], engine.mapper.model_hash)
     settings = Settings(
         model=MODEL.model_copy(update={"gallery": data_dir / "no-seed.npz"}),
         gallery=GallerySettings(data_dir=data_dir, self_check_poses=0, max_references=2),
@@ -164,26 +172,40 @@ def limited(tmp_path_factory):
             max_body_bytes=MAX_BODY,
             max_concurrent_align=1,
             queue_timeout_s=0.3,
-            request_timeout_s=1.0,
+            request_timeout_s=budget_s,
         ),
     )
-    server = ThreadServer(settings)
-    registered = server.client.post(
-        "/references", json={"name": "base", "points": cloud(400).tolist()}
-    )
-    assert registered.status_code == 201, registered.text
+    return ThreadServer(settings)
+
+
+@pytest.fixture(scope="module")
+def tight(tmp_path_factory):
+    """A budget of 2 s: for what happens when a request runs past it."""
+    server = limited_server(tmp_path_factory.mktemp("tight"), 2.0)
+    yield server
+    server.stop()
+
+
+@pytest.fixture(scope="module")
+def limited(tmp_path_factory):
+    """A budget that registrations fit in: for the limits on points, bodies and references."""
+    server = limited_server(tmp_path_factory.mktemp("limited"), 60.0)
     yield server
     server.stop()
 
 
 @needs_model
-def test_busy_and_timed_out_answers_over_http(limited, monkeypatch):
+def test_busy_and_timed_out_answers_over_http(tight, monkeypatch):
+    limited = tight
     engine = limited.app.state.catalog.engine
-    original = engine.align
+    original, finished = engine.align, threading.Event()
 
     def slow_align(*args, **kwargs):
-        time.sleep(1.6)
-        return original(*args, **kwargs)
+        time.sleep(2.5)
+        try:
+            return original(*args, **kwargs)
+        finally:
+            finished.set()
 
     monkeypatch.setattr(engine, "align", slow_align)
     body = {"points": cloud(200).tolist()}
@@ -197,26 +219,27 @@ def test_busy_and_timed_out_answers_over_http(limited, monkeypatch):
     assert refused.headers["retry-after"] == "1" and "busy" in refused.json()["detail"]
     assert still_running  # refused while the slow alignment held the slot, not after it
     assert timed_out.status_code == 504, timed_out.text
-    assert "budget of 1 s" in timed_out.json()["detail"]
-    time.sleep(0.8)  # the abandoned alignment finishes on its own and frees its slot
+    assert "budget of 2 s" in timed_out.json()["detail"]
+    assert finished.wait(60)  # the abandoned alignment finishes on its own and frees its slot
     monkeypatch.setattr(engine, "align", original)
     assert limited.client.post("/align", json=body).status_code == 200
 
 
 @needs_model
-def test_a_registration_that_times_out_stores_nothing(limited, monkeypatch):
+def test_a_registration_that_times_out_stores_nothing(tight, monkeypatch):
+    limited = tight
     engine = limited.app.state.catalog.engine
     original = engine.make_reference
 
     def slow_reference(*args, **kwargs):
-        time.sleep(1.3)
+        time.sleep(2.6)
         return original(*args, **kwargs)
 
     monkeypatch.setattr(engine, "make_reference", slow_reference)
     body = {"name": "late", "points": cloud(300).tolist()}
     response = limited.client.post("/references", json=body)
     assert response.status_code == 504, response.text
-    time.sleep(0.6)  # the thread has finished by now, and refused to commit
+    time.sleep(2.0)  # the thread has finished by now, and refused to commit
     assert limited.client.get("/references/late").status_code == 404
     monkeypatch.setattr(engine, "make_reference", original)
     assert limited.client.get("/v2/health/ready").status_code == 200

@@ -20,6 +20,8 @@ MODEL = "a" * 64
 
 
 def reference(name: str, seed: int = 0, count: int = 100) -> Reference:
+    """A reference with every field filled, of the right dtypes and shapes (random values: the
+    store keeps bytes, it does not look into them)."""
     rng = np.random.default_rng(seed)
     points = rng.normal(size=(count, 3)).astype(np.float32)
     return Reference(
@@ -28,14 +30,25 @@ def reference(name: str, seed: int = 0, count: int = 100) -> Reference:
         mapped=rng.normal(size=(count, 2)).astype(np.float32),
         view_grids=rng.random(size=(2, 64, 64)).astype(np.float32),
         scale=float(np.linalg.norm(points - points.mean(axis=0), axis=1).max()),
+        normals=rng.normal(size=(count, 3)).astype(np.float32),
+        visibility=rng.integers(0, 256, size=(4, (count + 7) // 8), dtype=np.uint8),
+        view_features=rng.random(size=(4, 256)).astype(np.float16),
+        field=rng.integers(0, count, size=(5, 6, 7), dtype=np.uint16),
+        field_frame=rng.normal(size=4),
+        symmetry={"kind": "revolution", "axis": [0.0, 0.0, 1.0], "flip": True},
     )
 
 
-def assert_identical(a: Reference, b: Reference) -> None:
+def assert_identical(a: Reference, b: Reference, fields: tuple[str, ...] | None = None) -> None:
+    """The same name, scale and bytes in every field (or in ``fields``)."""
     assert a.name == b.name and a.scale == b.scale
-    for field in ("points", "mapped", "view_grids"):
-        x, y = getattr(a, field), getattr(b, field)
-        assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
+    names = fields or tuple(item.name for item in dataclasses.fields(Reference))
+    for name in names:
+        x, y = getattr(a, name), getattr(b, name)
+        if not isinstance(x, np.ndarray):
+            assert x == y, name
+        else:
+            assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
 
 
 @pytest.fixture
@@ -147,8 +160,8 @@ def test_a_big_endian_array_is_stored_little_endian(store):
 class LaterReference(Reference):
     """What a later version's ``Reference`` may hold: more arrays, a JSON-able description."""
 
-    normals: np.ndarray = None  # type: ignore[assignment]
-    symmetry: dict = None  # type: ignore[assignment]
+    edges: np.ndarray = None  # type: ignore[assignment]
+    notes: dict = None  # type: ignore[assignment]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -163,15 +176,15 @@ class EarlierReference:
 
 def test_a_new_field_is_stored_without_store_code(store):
     base = reference("a")
-    normals = np.random.default_rng(1).normal(size=(100, 3)).astype(np.float64)
-    symmetry = {"kind": "revolution", "axis": [0.0, 0.0, 1.0]}
+    edges = np.random.default_rng(1).normal(size=(100, 3)).astype(np.float64)
+    notes = {"kind": "bracket", "holes": [0.0, 0.0, 1.0]}
     fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(Reference)}
-    later = LaterReference(**fields, normals=normals, symmetry=symmetry)
+    later = LaterReference(**fields, edges=edges, notes=notes)
     store.put(later, MODEL)
     (record,) = store.load_records()
-    assert record.values["normals"].dtype == np.float64
-    assert record.values["normals"].tobytes() == normals.tobytes()
-    assert record.values["symmetry"] == symmetry
+    assert record.values["edges"].dtype == np.float64
+    assert record.values["edges"].tobytes() == edges.tobytes()
+    assert record.values["notes"] == notes
     assert_identical(record.reference, base)  # this version's Reference leaves them out
 
 
@@ -179,7 +192,7 @@ def test_a_row_without_a_field_this_version_needs_is_marked_missing(store):
     base = reference("old")
     store.put(EarlierReference(base.name, base.points, base.mapped, base.scale), MODEL)
     (record,) = store.load_records()
-    assert record.missing == ("view_grids",)
+    assert "view_grids" in record.missing  # and every field derived at registration
     assert record.points.tobytes() == base.points.tobytes()
     with pytest.raises(ValueError, match="without view_grids: recompute"):
         assert record.reference
@@ -334,7 +347,8 @@ def test_a_version_1_gallery_is_migrated_with_nothing_lost(tmp_path):
     assert [r.name for r in records] == [r.name for r in references]
     for record, item, model_hash in zip(records, references, hashes, strict=True):
         assert record.reference.points_sha256 == item.points_sha256  # byte-identical points
-        assert_identical(record.reference, item)
+        assert_identical(record.reference, item, ("points", "mapped", "view_grids"))
+        assert "normals" in record.missing  # derived since version 1: the catalog computes it
         assert record.model_hash == model_hash and record.created_at.startswith("2026-11-0")
     store.put(reference("new"), MODEL)  # and it takes writes as a version 2 store
     assert SQLiteStore.in_dir(tmp_path).count() == 6

@@ -81,6 +81,13 @@ def decode(row: Row) -> dict[str, Any]:
     return values
 
 
+REQUIRED = tuple(  # the fields a Reference cannot be made without
+    f.name
+    for f in dataclasses.fields(Reference)
+    if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+)
+
+
 def missing(values: dict[str, Any]) -> tuple[str, ...]:
     """The fields of ``Reference`` that stored values lack, or hold as None (written by an older
     version, or seeded from a gallery file made before the field existed)."""

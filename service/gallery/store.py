@@ -105,9 +105,11 @@ class StoredReference:
 
     @cached_property
     def reference(self) -> Reference:
-        if self.missing:
+        """The stored reference; a derived field it lacks is None (the catalog recomputes it)."""
+        required = [name for name in self.missing if name in encoding.REQUIRED]
+        if required:
             raise ValueError(
-                f"reference '{self.name}' was stored without {', '.join(self.missing)}: "
+                f"reference '{self.name}' was stored without {', '.join(required)}: "
                 "recompute it from its points"
             )
         return encoding.to_reference(self.values)
