@@ -398,7 +398,9 @@ class Engine:
         )
         scene = np.asarray(points, dtype=np.float64)
         # 0. Set aside the table, stray points and clutter; more than one reading may be tried.
-        readings = set_aside_surroundings(scene, query.rng, query.viewpoint)
+        readings = set_aside_surroundings(
+            scene, np.random.default_rng(settings.seed), query.viewpoint
+        )
         query.clock.lap("surroundings")
         answer = None
         for reading in readings:

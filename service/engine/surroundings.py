@@ -1,4 +1,4 @@
-"""Step 0: set aside what surrounds the part: the table it rests on, stray points, clutter.
+"""Step 0: set aside what surrounds the part: the table it rests on, and stray points.
 
 A cell's camera sees the part on its support, with a few stray points (edges, reflections)
 and sometimes other things in view. Before recognition:
@@ -7,9 +7,12 @@ and sometimes other things in view. Before recognition:
   beyond its footprint: what a table under a part looks like, and what a face of the part
   itself does not (a face lies within the part's footprint, with the part behind it). Its
   points, and those under it, are set aside;
-- ``clusters``: the points fall into groups of neighbours (within ``LINK_SPACINGS`` times the
-  median spacing); the largest group is the part, with any group near it of a fair size (a
-  handle seen apart from its body); the rest is stray points and clutter.
+- ``strays``: the points fall into groups of neighbours (within ``LINK_SPACINGS`` times the
+  median spacing); groups of a few points, well apart from the rest, are strays. Larger
+  groups are all kept: one camera's view of one part often falls apart at the jumps in depth
+  where it hides itself,
+  so another object in view is not set aside (restrict the search with ``candidates``, or
+  crop the cloud, when a cell's view holds several parts).
 The answer says how many points were set aside.
 """
 
@@ -24,18 +27,19 @@ from scipy.spatial import cKDTree
 
 from service.engine.normalize import radius, subsample
 
-MAX_POINTS = 2048  # decisions are made on a sample of this many points
+MAX_POINTS = 1024  # decisions are made on a sample of this many points
 PLANE_SHARE = 0.2  # a support plane holds at least this share of the points ...
 PLANE_SHARE_BLIND = 0.5  # ... this share, when the viewpoint is not known
 PLANE_REACH = 1.5  # ... reaches this many times the rest's radius from the rest's centroid
 ONE_SIDE = 0.95  # ... has this share of the rest on one side of it
-BEYOND = 0.5  # ... and has this share of its points beyond the part's footprint
+BEYOND = 0.5  # ... has this share of its points beyond the part's footprint
+AROUND = 9  # ... in at least this many of 12 directions around it
 PLANE_ITERATIONS = 96
+PLANE_SCORED = 256  # points the candidate planes are scored on
 PLANE_SPACINGS = 1.5  # plane inliers lie within this many spacings of it
 LINK_SPACINGS = 3.0  # neighbours closer than this many spacings are one group
-NEAR_RADII = 0.5  # a group this many of the largest's radii from it, or nearer, ...
-FAIR_SHARE = 0.05  # ... that holds this share of its points belongs to the part
-ANOTHER = 1.05  # a reading with strays alone set aside is tried too if it keeps more points
+STRAY_SHARE = 0.02  # a group of less than this share of the points ...
+STRAY_GAP = 10.0  # ... this many spacings from any larger group is stray
 
 
 @dataclass(frozen=True)
@@ -66,11 +70,13 @@ def plane_candidate(
         return None
     normals = normals[good] / length[good, None]
     offsets = np.einsum("ij,ij->i", normals, samples[good, 0])
-    inliers = np.abs(points @ normals.T - offsets) < PLANE_SPACINGS * step  # (N, planes)
-    best = int(inliers.sum(axis=0).argmax())
-    if inliers[:, best].mean() < PLANE_SHARE:
+    tolerance = PLANE_SPACINGS * step
+    scored = points[rng.choice(count, size=min(count, PLANE_SCORED), replace=False)]
+    best = int((np.abs(scored @ normals.T - offsets) < tolerance).sum(axis=0).argmax())
+    inliers = np.abs(points @ normals[best] - offsets[best]) < tolerance
+    if inliers.mean() < PLANE_SHARE:
         return None
-    return np.append(normals[best], offsets[best]), inliers[:, best]
+    return np.append(normals[best], offsets[best]), inliers
 
 
 def is_support(
@@ -95,10 +101,21 @@ def is_support(
     across = offset - np.outer(offset @ plane[:3], plane[:3])  # within the plane
     distance = np.linalg.norm(across, axis=1)
     footprint = radius(part)
-    return bool(
-        np.percentile(distance, 95) >= PLANE_REACH * footprint
-        and np.mean(distance > footprint) >= BEYOND
-    )
+    beyond = distance > footprint
+    if np.percentile(distance, 95) < PLANE_REACH * footprint or beyond.mean() < BEYOND:
+        return False
+    # a table surrounds the part; a face of a part reaches out to one side of the rest
+    u = across[beyond][:, :] @ _in_plane(plane[:3])
+    sectors = np.unique(np.floor((np.arctan2(u[:, 1], u[:, 0]) + np.pi) / (2 * np.pi) * 12))
+    return bool(len(sectors) >= AROUND)
+
+
+def _in_plane(normal: np.ndarray) -> np.ndarray:
+    """(3, 2) two unit vectors spanning the plane of ``normal``."""
+    helper = np.array([1.0, 0, 0]) if abs(normal[0]) < 0.9 else np.array([0, 1.0, 0])
+    first = np.cross(normal, helper)
+    first /= np.linalg.norm(first)
+    return np.stack([first, np.cross(normal, first)], axis=1)
 
 
 def groups(points: np.ndarray, link: float) -> np.ndarray:
@@ -112,31 +129,26 @@ def groups(points: np.ndarray, link: float) -> np.ndarray:
     return labels
 
 
-def the_part(points: np.ndarray, labels: np.ndarray, strays_only: bool = False) -> np.ndarray:
-    """Which points belong to the part, given their ``groups``: the largest group, and every
-    group of a fair size that lies near it (a sparse or self-occluded part falls apart into
-    nearby pieces); with ``strays_only``, every group of a fair size."""
+def the_part(points: np.ndarray, labels: np.ndarray, step: float) -> np.ndarray:
+    """Which points belong to the part, given their ``groups``: every group but stray ones,
+    each under ``STRAY_SHARE`` of the points and more than ``STRAY_GAP`` spacings from any
+    larger group. A single view of one part often falls apart at the jumps in depth where it
+    hides itself, so larger groups are never set aside."""
     sizes = np.bincount(labels)
-    largest = int(sizes.argmax())
-    keep = labels == largest
-    fair = [label for label in np.flatnonzero(sizes >= FAIR_SHARE * sizes[largest])]
-    if strays_only:
-        return np.isin(labels, fair)
-    tree, reach = cKDTree(points[keep]), radius(points[keep])
-    for label in fair:
-        if label != largest:
-            gap, _ = tree.query(points[labels == label], k=1)
-            if gap.min() < NEAR_RADII * reach:
-                keep |= labels == label
+    keep = np.isin(labels, np.flatnonzero(sizes >= STRAY_SHARE * len(labels)))
+    if keep.all() or not keep.any():
+        return np.ones(len(points), dtype=bool) if not keep.any() else keep
+    gap, _ = cKDTree(points[keep]).query(points[~keep], k=1)
+    keep[np.flatnonzero(~keep)[gap <= STRAY_GAP * step]] = True
     return keep
 
 
 def set_aside_surroundings(
     points: np.ndarray, rng: np.random.Generator, viewpoint: np.ndarray | None = None
 ) -> list[Observation]:
-    """What may be the part's points (of all of ``points``): the reading with the support plane,
-    strays and clutter set aside first, then, where that set aside more than strays, the
-    reading with strays alone set aside. The engine keeps the one the part fits best.
+    """What may be the part's points (of all of ``points``): strays set aside, and a support
+    plane if there is one; where a plane was set aside, also the reading that
+    keeps it (in case it is the part's own face). The engine keeps the one the part fits best.
 
     The decisions are made on a sample of ``MAX_POINTS``; then every point inside the part's
     bounding sphere (and above the table) is the part's."""
@@ -150,20 +162,20 @@ def set_aside_surroundings(
         plane, on_plane = found
         rest = sample[~on_plane]
         if len(rest) >= 20:
-            main = rest[the_part(rest, groups(rest, link))]
+            main = rest[the_part(rest, groups(rest, link), step)]
             if is_support(plane, sample[on_plane], main, viewpoint):
                 height = np.median(main @ plane[:3] - plane[3])
                 support = plane * np.sign(height)  # its normal towards the part
                 part = ~on_plane & (sample @ support[:3] - support[3] > PLANE_SPACINGS * step)
-    labels = groups(sample, link)
     if support is None:
-        first = _reading(points, sample, the_part(sample, labels), None, step)
-    else:
-        chosen = np.zeros(len(sample), dtype=bool)
-        chosen[np.flatnonzero(part)[the_part(sample[part], groups(sample[part], link))]] = True
-        first = _reading(points, sample, chosen, support, step)
-    strays = _reading(points, sample, the_part(sample, labels, strays_only=True), None, step)
-    return [first, strays] if len(strays.points) > ANOTHER * len(first.points) else [first]
+        return [_reading(points, sample, the_part(sample, groups(sample, link), step), None, step)]
+    chosen = np.zeros(len(sample), dtype=bool)
+    chosen[np.flatnonzero(part)[the_part(sample[part], groups(sample[part], link), step)]] = True
+    everything = the_part(sample, groups(sample, link), step)
+    return [
+        _reading(points, sample, chosen, support, step),
+        _reading(points, sample, everything, None, step),  # in case the plane is the part's
+    ]
 
 
 def _reading(points, sample, chosen, support, step) -> Observation:
