@@ -19,6 +19,7 @@ accepted answers that are right and of wrong ones accepted. Answers refused befo
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -34,6 +35,7 @@ from evaluation.metrics import SUCCESS_ADD_S, add_s, auroc, diameter, expected_c
 from service.engine import confidence
 from service.engine.confidence import FEATURES, Calibration
 from service.engine.engine import Engine
+from service.engine.mapping import file_sha256
 from service.settings import MODELS_DIR, EngineSettings
 from training.objects import load_manifest, load_object_meshes
 
@@ -114,7 +116,14 @@ def fit_calibration(rows: list[dict]) -> Calibration:
         gradient = np.append(z.T @ (p - y) / len(y) + 2 * RIDGE * weights, np.mean(p - y))
         return value, gradient
 
-    solved = minimize(loss, np.zeros(len(FEATURES) + 1), jac=True, method="L-BFGS-B")
+    # more fit, coverage or margin never lowers the confidence; a closer other pose never
+    # raises it: the signs are constrained, so the answer's meaning cannot invert
+    signs = {"fit": 1, "coverage": 1, "margin": 1, "alike": -1}
+    bounds = [
+        (0, None) if signs.get(n) == 1 else (None, 0) if signs.get(n) == -1 else (None, None)
+        for n in FEATURES
+    ] + [(None, None)]
+    solved = minimize(loss, np.zeros(len(FEATURES) + 1), jac=True, method="L-BFGS-B", bounds=bounds)
     return Calibration(FEATURES, solved.x[:-1], float(solved.x[-1]), mean, spread, {})
 
 
@@ -179,6 +188,15 @@ def main(argv: list[str] | None = None) -> dict:
     calibration = Calibration(*[getattr(calibration, f) for f in ("features", "weights",
         "bias", "mean", "spread")], about)  # fmt: skip
     calibration.save(args.out)
+    manifest = args.out.parent / "manifest.json"
+    if manifest.exists() and args.out.parent.resolve() == MODELS_DIR.resolve():
+        record = json.loads(manifest.read_text())  # the release lists what it ships
+        record["files"][args.out.name] = {
+            "sha256": file_sha256(args.out),
+            "bytes": args.out.stat().st_size,
+        }
+        record["confidence"] = {k: about[k] for k in ("fitted", "command", "fit", "check")}
+        manifest.write_text(json.dumps(record, indent=2) + "\n")
     for part in ("fit", "check"):
         print(part, about[part])
     print(f"confidence calibration written to {args.out} in {about['seconds']:.0f} s")

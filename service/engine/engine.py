@@ -426,30 +426,32 @@ class Engine:
             answer.points,
             answer.size_ratio,
         )
-        answer.reasons = confidence.reasons(
-            answer.label, values, answer.runner_up_label, answer.ambiguous
-        )
         if self.calibration is None:
             answer.verdict, answer.confidence = "uncertain", None
-            answer.reasons.append("no confidence calibration is loaded (confidence.json)")
-            return
-        answer.confidence = self.calibration.confidence(values)
-        for alternative in answer.alternatives:
-            alternative.confidence = answer.confidence
-        threshold = settings.accept if min_confidence is None else min_confidence
-        if answer.confidence >= threshold:
-            answer.verdict, answer.reasons = "match", []
-            return
-        answer.verdict = "no_match" if answer.confidence < settings.reject_below else "uncertain"
-        answer.reasons.append(
-            f"the confidence {answer.confidence:.2f} is below the threshold {threshold:.2f}"
+            reasons = ["no confidence calibration is loaded (confidence.json)"]
+        else:
+            answer.confidence = self.calibration.confidence(values)
+            for alternative in answer.alternatives:
+                alternative.confidence = answer.confidence
+            threshold = settings.accept if min_confidence is None else min_confidence
+            if answer.confidence >= threshold:
+                answer.verdict, answer.reasons = "match", []
+                return
+            low = answer.confidence < settings.reject_below
+            answer.verdict = "no_match" if low else "uncertain"
+            reasons = [
+                f"the confidence {answer.confidence:.2f} is below the threshold {threshold:.2f}"
+            ]
+        reasons += confidence.reasons(
+            answer.label, values, answer.runner_up_label, answer.ambiguous
         )
         size = answer.size_ratio * query.snapshot.entries[answer.label].reference.scale
+        scales = query.snapshot.scales[query.allowed]
         for factor in UNIT_FACTORS:  # would the cloud fit a reference in other units?
-            scales = query.snapshot.scales[query.allowed]
-            if self._plausible(scales, size / factor, self.settings.size_ratio).any():
-                answer.reasons.append(size_reason(factor, also=True))
+            if self._plausible(scales, size / factor, settings.size_ratio).any():
+                reasons.append(size_reason(factor, also=True))
                 break
+        answer.reasons = reasons
 
     def _align_reading(self, query: Query, scene: np.ndarray) -> Alignment:
         """Steps 1-8 on one reading of the observation."""

@@ -1,0 +1,169 @@
+"""The engine's answers, end to end on the shipped model and gallery: single views, what
+surrounds a part, units, the verdict and its confidence, and what registration derives."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from evaluation.metrics import add_s, diameter
+from service.engine.confidence import Calibration, measures
+from service.engine.engine import Engine
+from service.engine.mapping import Mapper
+from service.engine.sampling import sample_surface_faces
+from service.engine.surroundings import set_aside_surroundings
+from service.engine.views import directions
+from service.gallery.gallery_file import load_gallery
+from service.settings import Settings
+from tests.conftest import pybullet_mesh
+
+SETTINGS = Settings()
+needs_model = pytest.mark.skipif(
+    not SETTINGS.model.path.exists(), reason=f"no ONNX model at {SETTINGS.model.path}"
+)
+needs_calibration = pytest.mark.skipif(
+    not SETTINGS.confidence_path.exists(), reason=f"no calibration at {SETTINGS.confidence_path}"
+)
+
+
+@pytest.fixture(scope="module")
+def engine() -> Engine:
+    calibration = (
+        Calibration.load(SETTINGS.confidence_path) if SETTINGS.confidence_path.exists() else None
+    )
+    engine = Engine(Mapper(SETTINGS.model.path, use_cuda=False), SETTINGS.engine, calibration)
+    references, _ = load_gallery(SETTINGS.model.gallery)
+    engine.load(references)
+    return engine
+
+
+def placed(points: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rotation = Rotation.random(random_state=seed).as_matrix()
+    translation = np.random.default_rng(seed).uniform(-0.2, 0.2, 3) + [0, 0, 0.6]
+    return points @ rotation.T + translation, rotation, translation
+
+
+def right(engine: Engine, name: str, answer, rotation, translation) -> bool:
+    points = np.asarray(engine.get(name).points, np.float64)
+    error = add_s(
+        points, answer.rotation, answer.translation, rotation, translation, diameter(points)
+    )
+    return answer.label == name and error < 0.1
+
+
+@needs_model
+def test_a_depth_camera_view_of_a_registered_part_is_recognised_and_posed(engine):
+    pytest.importorskip("open3d", exc_type=ImportError)
+    from evaluation.scenes import sensor_view
+
+    mesh = pybullet_mesh("lego/lego.obj")  # the seen "lego-brick"
+    rotation = Rotation.random(random_state=3).as_matrix()
+    scale = engine.get("lego-brick").scale
+    view = sensor_view(mesh, rotation, 6 * scale, np.random.default_rng(3))
+    assert 200 < len(view.points) < 20000
+    answer = engine.align(view.points, viewpoint=view.viewpoint)
+    assert right(engine, "lego-brick", answer, view.rotation, view.translation)
+    assert answer.hypothesis in ("views", "principal-axes", "mapped")
+    assert {"surroundings", "map", "classify", "hypothesise", "verify", "refine"} <= set(
+        answer.timings_ms
+    )
+
+
+def test_the_table_and_two_percent_strays_are_set_aside_from_a_box_on_it():
+    rng = np.random.default_rng(0)
+    box = trimesh.creation.box(extents=(0.06, 0.04, 0.05))
+    box.apply_translation((0, 0, 0.025))  # resting on z = 0
+    part = sample_surface_faces(box, 3000, 1)[0].astype(np.float64)
+    part = part[part[:, 2] > 0.001]  # the face on the table is not seen
+    radius = np.linalg.norm(part - part.mean(axis=0), axis=1).max()
+    disc = rng.uniform(-2.5 * radius, 2.5 * radius, size=(12000, 2))
+    disc = disc[np.linalg.norm(disc, axis=1) < 2.5 * radius]
+    table = np.column_stack([disc, rng.normal(scale=1e-4, size=len(disc))])
+    cloud = np.vstack([part, table])
+    strays = rng.uniform(cloud.min(axis=0) - radius, cloud.max(axis=0) + radius, (300, 3))
+    scene = np.vstack([cloud, strays])
+    camera = np.array([0.0, -0.3, 0.4])  # above the table, looking down at it obliquely
+    (reading, with_plane) = set_aside_surroundings(scene, rng, camera)
+    kept = {tuple(p) for p in np.round(reading.points, 9)}
+    part_kept = np.mean([tuple(p) in kept for p in np.round(part, 9)])
+    table_kept = np.mean([tuple(p) in kept for p in np.round(table, 9)])
+    strays_kept = np.mean([tuple(p) in kept for p in np.round(strays, 9)])
+    assert part_kept > 0.9 and table_kept < 0.02 and strays_kept < 0.1
+    assert reading.support is not None and abs(reading.support[2]) > 0.99
+    assert len(with_plane.points) > len(reading.points)  # the other reading keeps the plane
+    assert reading.set_aside == len(scene) - len(reading.points)
+
+
+@needs_model
+def test_a_clean_cloud_sets_nothing_aside(engine):
+    sample = np.asarray(engine.get("mug").points, np.float64)
+    (reading,) = set_aside_surroundings(sample, np.random.default_rng(0))
+    assert reading.set_aside == 0 and len(reading.points) == len(sample)
+
+
+@needs_model
+def test_a_millimetre_cloud_is_no_match_naming_the_units(engine):
+    scene, _, _ = placed(np.asarray(engine.get("mug").points, np.float64), 4)
+    answer = engine.align(scene * 1000)
+    assert answer.verdict == "no_match"
+    assert any("millimetres" in reason for reason in answer.reasons), answer.reasons
+    assert np.isfinite(answer.alignment_error) and np.isfinite(answer.rotation).all()
+
+
+@needs_model
+@needs_calibration
+def test_min_confidence_is_honoured(engine):
+    points = np.asarray(engine.get("bunny").points, np.float64)
+    rng = np.random.default_rng(5)
+    scene, rotation, translation = placed(points + rng.normal(scale=1e-4, size=points.shape), 5)
+    plain = engine.align(scene)
+    assert right(engine, "bunny", plain, rotation, translation)
+    assert plain.verdict == "match" and plain.confidence >= SETTINGS.engine.accept
+    strict = engine.align(scene, min_confidence=min(1.0, plain.confidence + 1e-6))
+    assert strict.verdict != "match" and strict.reasons
+    assert engine.align(scene, min_confidence=0.0).verdict == "match"
+
+
+@needs_calibration
+def test_confidence_is_monotone_in_the_fit():
+    calibration = Calibration.load(SETTINGS.confidence_path)
+    previous = -1.0
+    for share in np.linspace(0.0, 1.0, 21):
+        value = calibration.confidence(measures(share, 0.9, 0.2, 0.0, 2048, 1.0))
+        assert value >= previous
+        previous = value
+
+
+@needs_model
+@needs_calibration
+def test_noise_is_no_match(engine):
+    rng = np.random.default_rng(6)
+    scale = engine.get("mug").scale
+    junk = rng.uniform(-scale, scale, size=(2000, 3)) + [0, 0, 0.5]
+    answer = engine.align(junk)
+    assert answer.verdict != "match" and answer.reasons
+
+
+@needs_model
+@pytest.mark.parametrize("as_mesh", [True, False], ids=["mesh", "cloud"])
+def test_registration_of_a_mesh_and_of_a_cloud_produces_views(engine, as_mesh):
+    mesh = pybullet_mesh("duck.obj")
+    points, faces = sample_surface_faces(mesh, 2048, 0)
+    reference = engine.make_reference(
+        "duck", points, mesh=mesh if as_mesh else None, face_index=faces if as_mesh else None
+    )
+    views = engine.settings.views
+    assert not reference.missing
+    assert reference.visible().shape == (views, len(points))
+    seen = reference.visible().mean(axis=1)
+    assert 0.15 < np.median(seen) < 0.6  # a camera sees about a third to half of a part
+    assert reference.view_features.shape == (views, 256)
+    assert reference.symmetry["kind"] == "none"  # a duck has no symmetry
+    # unit normals, facing the cameras that see their points
+    normals = reference.normals.astype(np.float64)
+    assert np.allclose(np.linalg.norm(normals, axis=1), 1, atol=1e-3)
+    visible, ways = reference.visible(), directions(views)
+    facing = [normals[visible[k]] @ ways[k] > 0 for k in range(views)]
+    assert np.mean(np.concatenate(facing)) > 0.93
