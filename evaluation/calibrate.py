@@ -36,10 +36,11 @@ from service.engine import confidence
 from service.engine.confidence import FEATURES, Calibration
 from service.engine.engine import Engine
 from service.engine.mapping import file_sha256
-from service.settings import MODELS_DIR, EngineSettings
+from service.settings import MODELS_DIR
 from training.objects import load_manifest, load_object_meshes
 
 RIDGE = 1e-2  # L2 weight on the standardised features' weights
+PRECISION = 0.99  # the share of accepted answers that must be right, at the default threshold
 
 
 def cases_of(meshes: dict, scales: dict[str, float], per_object: int, seed: int) -> list[Case]:
@@ -144,12 +145,25 @@ def judge(calibration: Calibration, rows: list[dict], accept: float) -> dict:
     }
 
 
+def acceptance(calibration: Calibration, rows: list[dict]) -> float:
+    """The lowest threshold at which at least ``PRECISION`` of the accepted answers of ``rows``
+    are right: the service's default acceptance threshold."""
+    scores = np.array([calibration.confidence(row) for row in rows])
+    right = np.array([row["right"] for row in rows])
+    for threshold in np.arange(0.5, 0.995, 0.01):
+        accepted = scores >= threshold
+        if accepted.any() and right[accepted].mean() >= PRECISION:
+            return round(float(threshold), 2)
+    return 0.99
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(prog="python -m evaluation.calibrate", description=__doc__)
     parser.add_argument("--out", type=Path, default=MODELS_DIR / "confidence.json")
     parser.add_argument("--quick", action="store_true", help="a few objects (a few minutes)")
     parser.add_argument("--per-object", type=int, default=2, help="so3 clouds per object")
     parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--rows", type=Path, default=None, help="also write every answer here")
     args = parser.parse_args(argv)
     began = time.perf_counter()
     seen, unseen = load_manifest(split="seen"), load_manifest(split="unseen")
@@ -172,7 +186,7 @@ def main(argv: list[str] | None = None) -> dict:
     check_cases += make_cases("foreign", foreign_meshes, scales, 2048, args.seed + 1, 2)
     check_rows = collect(engine, check_cases, "check")
     calibration = fit_calibration(fit_rows)
-    accept = EngineSettings().accept
+    accept = acceptance(calibration, fit_rows)
     about = {
         "fitted": datetime.now(UTC).isoformat(timespec="seconds"),
         "command": "python -m evaluation.calibrate" + (" --quick" if args.quick else ""),
@@ -185,8 +199,17 @@ def main(argv: list[str] | None = None) -> dict:
         "accept": accept,
         "seconds": round(time.perf_counter() - began, 1),
     }
+    about["thresholds"] = {
+        f"{t:.2f}": {
+            "fit": judge(calibration, fit_rows, t),
+            "check": judge(calibration, check_rows, t),
+        }
+        for t in (0.5, 0.7, 0.8, 0.9, 0.95)
+    }
     calibration = Calibration(*[getattr(calibration, f) for f in ("features", "weights",
-        "bias", "mean", "spread")], about)  # fmt: skip
+        "bias", "mean", "spread")], about, accept)  # fmt: skip
+    if args.rows:
+        args.rows.write_text(json.dumps({"fit": fit_rows, "check": check_rows}, default=float))
     calibration.save(args.out)
     manifest = args.out.parent / "manifest.json"
     if manifest.exists() and args.out.parent.resolve() == MODELS_DIR.resolve():

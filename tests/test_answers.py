@@ -120,7 +120,7 @@ def test_min_confidence_is_honoured(engine):
     scene, rotation, translation = placed(points + rng.normal(scale=1e-4, size=points.shape), 5)
     plain = engine.align(scene)
     assert right(engine, "bunny", plain, rotation, translation)
-    assert plain.verdict == "match" and plain.confidence >= SETTINGS.engine.accept
+    assert plain.verdict == "match" and plain.confidence >= engine.calibration.accept
     strict = engine.align(scene, min_confidence=min(1.0, plain.confidence + 1e-6))
     assert strict.verdict != "match" and strict.reasons
     assert engine.align(scene, min_confidence=0.0).verdict == "match"

@@ -14,8 +14,10 @@ logistic regression over a few measures of the answer, each in units of the part
 Its weights are fitted on the evaluation's cases of the objects the model was trained on and
 checked on parts it never saw (``python -m evaluation.calibrate``), and shipped beside the model
 as ``confidence.json``. The verdict follows: ``match`` at or above the acceptance threshold
-(a setting, or the request's ``min_confidence``), ``no_match`` below ``reject_below``,
-``uncertain`` between; every verdict but ``match`` says why.
+(the request's ``min_confidence``, else the setting ``engine.accept``, else the calibration's
+own: the lowest at which 99 % of the accepted answers it was fitted on were right),
+``no_match`` below ``reject_below``, ``uncertain`` between; every verdict but ``match`` says
+why.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ class Calibration:
     mean: np.ndarray  # (F,) the features are standardised with these before the weights
     spread: np.ndarray  # (F,)
     about: dict  # what it was fitted on and how well it did, for the record
+    accept: float = 0.9  # the default acceptance threshold the fit chose (see evaluation)
 
     @classmethod
     def load(cls, path: Path) -> Calibration:
@@ -51,6 +54,7 @@ class Calibration:
             np.asarray(document["mean"], dtype=np.float64),
             np.asarray(document["spread"], dtype=np.float64),
             document.get("about", {}),
+            float(document.get("accept", 0.9)),
         )
 
     def save(self, path: Path) -> None:
@@ -60,6 +64,7 @@ class Calibration:
             "bias": self.bias,
             "mean": self.mean.tolist(),
             "spread": self.spread.tolist(),
+            "accept": self.accept,
             "about": self.about,
         }
         Path(path).write_text(json.dumps(document, indent=2) + "\n")

@@ -433,7 +433,11 @@ class Engine:
             answer.confidence = self.calibration.confidence(values)
             for alternative in answer.alternatives:
                 alternative.confidence = answer.confidence
-            threshold = settings.accept if min_confidence is None else min_confidence
+            threshold = next(
+                t
+                for t in (min_confidence, settings.accept, self.calibration.accept)
+                if t is not None
+            )
             if answer.confidence >= threshold:
                 answer.verdict, answer.reasons = "match", []
                 return
