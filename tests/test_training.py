@@ -6,8 +6,11 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import os
 import re
 import shlex
+import subprocess
+import sys
 import typing
 from pathlib import Path
 
@@ -19,6 +22,7 @@ torch = pytest.importorskip("torch")
 
 from service.engine.mapping import Mapper  # noqa: E402
 from training.export import check_parity, export_onnx, load_checkpoint  # noqa: E402
+from training.model import DPCMN, ModelConfig  # noqa: E402
 from training.train import PAPER, config_to_dict, parse_args  # noqa: E402
 from training.train import main as train_main  # noqa: E402
 
@@ -176,3 +180,49 @@ def test_the_readmes_training_command_gives_the_shipped_configuration():
     if trained != config.epochs:
         assert f'"trained_epochs": {trained}' in readme
     assert re.search(rf"\b{trained} epochs \(", readme), "the README's epochs and timing"
+
+
+def test_two_ranks_match_one_process_and_resume_either_way(mesh_dir, tmp_path):
+    """torchrun with two CPU ranks (gloo), each on half of every batch, takes the steps one
+    process takes on the whole batch; its checkpoint resumes in one process, and one
+    process's checkpoint resumes under torchrun."""
+    common = [
+        "--mesh-dir",
+        str(mesh_dir),
+        "--points",
+        "64",
+        "--views-per-epoch",
+        "4",
+        "--batch",
+        "5",  # 12 clouds an epoch: batches of 5, 5 and 2; shares of 2 and 3, 1 and 1
+        "--seed",
+        "3",
+        "--optimizer",  # linear in the gradients: rounding differences stay rounding-sized
+        "sgd",  # (Adam scales a near-zero gradient's noise up to a whole step)
+        "--lr",
+        "0.05",
+    ]
+    single, ranks = tmp_path / "single", tmp_path / "ranks"
+    train_main([*common, "--out", str(single), "--epochs", "2"])
+    torchrun(*common, "--out", str(ranks), "--epochs", "1")
+    train_main([*common, "--out", str(ranks), "--epochs", "2", "--resume"])
+    first = torch.load(single / "checkpoint.pt", weights_only=True)
+    second = torch.load(ranks / "checkpoint.pt", weights_only=True)
+    assert first["epoch"] == second["epoch"] == 1
+    initial = DPCMN(ModelConfig()).state_dict()
+    for name, weights in first["model"].items():
+        torch.testing.assert_close(second["model"][name], weights, rtol=1e-5, atol=1e-6)
+        assert not torch.equal(weights, initial[name]) or weights.dim() == 0, name  # it trained
+    np.testing.assert_allclose(read_losses(single), read_losses(ranks), rtol=1e-4)
+
+    torchrun(*common, "--out", str(single), "--epochs", "3", "--resume")
+    assert len(read_losses(single)) == 3
+
+
+def torchrun(*args: str) -> None:
+    """``python -m training.train`` as two CPU ranks of torchrun."""
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone"]
+    command += ["--nproc_per_node", "2", "-m", "training.train", *args]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "CUDA_VISIBLE_DEVICES": ""}
+    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]

@@ -93,7 +93,11 @@ class TrainingClouds:
         """How many leading rows the anchor and the rotated cloud have in common."""
         return max(1, round(self.config.shared * self.config.points))
 
-    def batch(self, names: list[str], rng: np.random.Generator) -> tuple[np.ndarray, ...]:
-        """Stacked (B, N, 3) anchors, positives and rotated clouds."""
-        triplets = [self.triplet(name, rng) for name in names]
+    def batch(self, names: list[str], seeds: list) -> tuple[np.ndarray, ...]:
+        """Stacked (B, N, 3) anchors, positives and rotated clouds, each cloud drawn with its
+        own seed: the same cloud whichever rank, or which batch of a rank, draws it."""
+        triplets = [
+            self.triplet(name, np.random.default_rng(seed))
+            for name, seed in zip(names, seeds, strict=True)
+        ]
         return tuple(np.stack(part) for part in zip(*triplets, strict=True))

@@ -3,9 +3,11 @@
     python -m training.train --out runs/shipped            # the objects of training/objects.json
     python -m training.train --mesh-dir my_parts/ --out runs/mine   # any folder of OBJ/STL/PLY
     python -m training.train --out runs/shipped --resume   # go on from the last checkpoint
+    torchrun --standalone --nproc_per_node 2 -m training.train --out runs/shipped  # 2 ranks
 
 Reads top to bottom: settings, data, model, optimiser, the loop, checkpoints.
-The same code runs on CUDA when present and on the CPU otherwise.
+The same code runs on CUDA when present and on the CPU otherwise, in one process or as the
+ranks of ``torchrun`` (``training.distributed``: chosen by the environment).
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import torch
 from tqdm import tqdm
 
 from training.data import DataConfig, TrainingClouds
+from training.distributed import Ranks
 from training.losses import total_loss
 from training.model import DPCMN, ModelConfig
 from training.objects import load_manifest, load_object_meshes, objects_from_folder
@@ -166,16 +169,16 @@ def config_from_dict(values: dict, cls: type = TrainConfig):
 
 def train(config: TrainConfig, resume: bool = False) -> Path:
     out = Path(config.out)
-    out.mkdir(parents=True, exist_ok=True)
     checkpoint_path = out / "checkpoint.pt"
-    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    ranks = Ranks.from_environment()  # one process, or one rank of torchrun
+    device = ranks.device
     torch.manual_seed(config.seed)
 
     # Data: fresh surface samples of the training objects every epoch.
     specs = training_objects(config)
     clouds = TrainingClouds(load_object_meshes(specs), config.data, config.seed)
 
-    # Model and optimiser, or both as the checkpoint left them.
+    # Model and optimiser, or both as the checkpoint left them (by either kind of run).
     model = DPCMN(config.model).to(device)
     optimizer = make_optimizer(config, model)
     start_epoch = 0
@@ -184,45 +187,65 @@ def train(config: TrainConfig, resume: bool = False) -> Path:
         model.load_state_dict(checkpoint["model"])
         optimizer.load_state_dict(checkpoint["optimizer"])
         start_epoch = checkpoint["epoch"] + 1
-    (out / "config.json").write_text(json.dumps(config_to_dict(config), indent=2))
-
-    # The loop: each epoch shows every object views_per_epoch times, in batches.
+    trained = ranks.wrap(model)  # DistributedDataParallel under torchrun
     log_path = out / "log.csv"
-    if start_epoch == 0:
-        log_path.write_text("epoch,loss,mapping_loss,pose_loss,seconds\n")
+    if ranks.main:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "config.json").write_text(json.dumps(config_to_dict(config), indent=2))
+        if start_epoch == 0:
+            log_path.write_text("epoch,loss,mapping_loss,pose_loss,seconds\n")
+
+    # The loop: each epoch shows every object views_per_epoch times, in batches; each rank
+    # computes its share of every batch (each cloud seeded by its place in the epoch).
     for epoch in range(start_epoch, config.epochs):
         began = time.perf_counter()
         rng = np.random.default_rng([config.seed, epoch])
         clouds.start_epoch(epoch)
         order = rng.permutation(np.repeat(clouds.names, config.views_per_epoch))
-        batches = [order[i : i + config.batch] for i in range(0, len(order), config.batch)]
+        batches = ranks.batches(order, config.batch)
         sums = np.zeros(3)
-        model.train()
-        for names in tqdm(batches, desc=f"epoch {epoch + 1}/{config.epochs}", leave=False):
+        trained.train()
+        progress = tqdm(
+            list(enumerate(batches)),
+            desc=f"epoch {epoch + 1}/{config.epochs}",
+            leave=False,
+            disable=not ranks.main,
+        )
+        for index, names in progress:
+            share = ranks.share(len(names))
+            seeds = [[config.seed, epoch, index, k] for k in range(share.start, share.stop)]
             anchor, positive, rotated = (
-                torch.from_numpy(part).to(device) for part in clouds.batch(list(names), rng)
+                torch.from_numpy(part).to(device)
+                for part in clouds.batch(list(names[share]), seeds)
             )
-            mapped = model(torch.cat([anchor, positive, rotated]))
+            mapped = trained(torch.cat([anchor, positive, rotated]))
             m_a, m_p, m_i = mapped.chunk(3)
-            m_n = m_a[:, torch.randperm(m_a.shape[1], device=device)]  # the shuffled anchor
+            shuffle = torch.Generator().manual_seed(config.seed * 1_000_003 + epoch * 1009 + index)
+            m_n = m_a[:, torch.randperm(m_a.shape[1], generator=shuffle).to(device)]  # shuffled
+            # anchor: the same permutation on every rank, and after a resume
             shared = clouds.shared_rows  # eq. (2) compares the points both clouds hold
             loss, l_m, l_p = total_loss(
                 m_a, m_p, m_n, m_i[:, :shared], config.margin, config.weight, m_a[:, :shared]
             )
+            weight = ranks.weight(len(names))  # this share's part of the batch's mean
             optimizer.zero_grad()
-            loss.backward()
+            (loss * weight).backward()
             optimizer.step()
-            sums += [loss.item(), l_m.item(), l_p.item()]
+            sums += np.array([loss.item(), l_m.item(), l_p.item()]) * weight / ranks.world
+        means = ranks.total(sums) / len(batches)
         seconds = time.perf_counter() - began
-        means = sums / len(batches)
+        if not ranks.main:
+            continue
         with log_path.open("a", newline="") as log:
             csv.writer(log).writerow([epoch + 1, *np.round(means, 6), round(seconds, 2)])
         tqdm.write(
             f"epoch {epoch + 1}: loss {means[0]:.4f} (L_m {means[1]:.4f}, "
             f"L_p {means[2]:.4f}) {seconds:.1f} s"
+            + (f" on {ranks.world} ranks" if ranks.world > 1 else "")
         )
 
-        # Checkpoints carry the model's arguments and the run's config.
+        # Checkpoints carry the model's arguments and the run's config; the bare model's
+        # weights, so that one process or any number of ranks resumes them.
         torch.save(
             {
                 "model": model.state_dict(),
@@ -233,6 +256,7 @@ def train(config: TrainConfig, resume: bool = False) -> Path:
             },
             checkpoint_path,
         )
+    ranks.close()
     return checkpoint_path
 
 
