@@ -66,7 +66,7 @@ class GallerySettings(BaseModel):
     # postgresql://user:password@host:5432/database: the gallery in PostgreSQL, shared by every
     # replica that names it; none: SQLite in data_dir
     url: str | None = Field(None, repr=False)
-    poll_s: float = Field(0.5, gt=0)  # how often a replica checks for others' changes anyway
+    poll_s: float = Field(0.25, gt=0)  # how often a replica checks for others' changes anyway
     listen: bool = True  # PostgreSQL LISTEN/NOTIFY (off behind a pooler in transaction mode)
     pool_size: int = Field(4, ge=1)  # PostgreSQL connections per replica
     reference_points: int = Field(2048, ge=64)  # a mesh upload is sampled to this many points

@@ -5,7 +5,8 @@ What one replica changes, the other serves (each keeps its snapshot in memory an
 store: LISTEN/NOTIFY, and the version check as the fallback). A replica killed with SIGKILL in
 the middle of registrations and deletions loses nothing it acknowledged, and leaves nothing
 half-written, as the other replica sees it. A replica that cannot reach the database is not
-ready, says why, still aligns from its snapshot, and is ready again once the database is back.
+ready, says why, still aligns from its snapshot, and is ready again once the database is back;
+one started before its database waits for it.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import pytest
 
 from tests.backends import Location
 from tests.ledger import Ledger, cloud, sha
-from tests.servers import MODEL, ProcessServer
+from tests.servers import MODEL, ProcessServer, ServiceProcess
 
 pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
 
@@ -45,12 +46,13 @@ def replica(location: Location, log, **settings: str) -> ProcessServer:
 
 
 def eventually(check: Callable[[], object], timeout: float = FOLLOW_TIMEOUT_S):
-    """``check()``'s value once it returns without an AssertionError, retried until ``timeout``."""
+    """``check()``'s value once it returns without an AssertionError (or a refused connection:
+    a server starting), retried until ``timeout``."""
     deadline = time.monotonic() + timeout
     while True:
         try:
             return check()
-        except AssertionError:
+        except (AssertionError, httpx.TransportError):
             if time.monotonic() > deadline:
                 raise
             time.sleep(0.02)
@@ -167,3 +169,35 @@ def psycopg_admin(url: str):
     import psycopg
 
     return psycopg.connect(url, autocommit=True)
+
+
+def test_a_replica_started_before_its_database_waits_for_it(postgres_server, tmp_path):
+    name = f"later_{tmp_path.name[-12:].replace('-', '_').lower()}"
+    url = postgres_server.database_url(name)
+    location = Location(tmp_path / "data", url)
+    process = ServiceProcess(
+        tmp_path / "later.log",
+        wait=False,
+        gallery__url=url,
+        gallery__data_dir=str(location.data_dir),
+        model__gallery=str(tmp_path / "no-seed.npz"),
+        server__log_level="warning",
+    )
+    try:
+        with httpx.Client(base_url=process.url, timeout=10) as client:
+
+            def waiting() -> None:
+                detail = status(client, "GET", "/v2/health/ready", 503).json()["detail"]
+                assert "waiting for the gallery store" in detail and name in detail, detail
+
+            eventually(waiting, timeout=60)
+            assert process.alive()
+            admin = psycopg_admin(postgres_server.url)
+            admin.execute(f'CREATE DATABASE "{name}"')
+            admin.close()
+            eventually(lambda: status(client, "GET", "/v2/health/ready", 200), timeout=60)
+            store = location.store()
+            assert store.get_meta("schema_version") == "2"
+            store.close()
+    finally:
+        process.stop()

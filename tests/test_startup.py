@@ -248,3 +248,9 @@ def test_every_group_is_a_model_of_settings():
     """setting_variables walks groups of fields; a setting outside a group would be missed."""
     for info in Settings.model_fields.values():
         assert issubclass(info.annotation, BaseModel)
+
+
+def test_a_gallery_url_that_is_not_postgresql(tmp_path):
+    result = run_service(tmp_path / "data", gallery__url="mysql://user:very-secret@host/db")
+    refused(result, "invalid settings", "DPC_GALLERY__URL", "postgresql://")
+    assert "very-secret" not in result.stderr + result.stdout
