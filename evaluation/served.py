@@ -104,7 +104,7 @@ class ServiceProcess:
                         self.ready_s = time.perf_counter() - self.began
                         return
                     detail = answer.json().get("detail") or ""
-                    if "failed" in detail or "damaged" in detail:
+                    if detail.startswith(("loading the gallery failed", "the gallery store is")):
                         raise RuntimeError(f"the gallery did not load: {detail}\n{self.log()}")
                 except httpx.TransportError:
                     pass

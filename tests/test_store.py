@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from service.engine.reference import Reference
-from service.errors import ReferenceExists, UnknownReference
+from service.errors import ReferenceExists, StoreUnavailable, UnknownReference
+from service.gallery.postgres_store import PostgresStore
 from service.gallery.sqlite_store import SQLiteStore
 from service.gallery.store import SCHEMA_VERSION, StoreCorrupted, StoreIncompatible
 
@@ -369,3 +370,16 @@ def test_a_damaged_version_1_row_stops_the_migration_and_changes_nothing(tmp_pat
         assert conn.execute("SELECT COUNT(*) FROM reference").fetchone() == (2,)
     conn.close()
     assert len(before) > 0
+
+
+def test_a_postgresql_store_out_of_reach_says_where_but_never_the_password():
+    store = PostgresStore(
+        "postgresql://dpc:hunter2@127.0.0.1:1/gallery?password=hunter3", 1, True, 1
+    )
+    try:
+        with pytest.raises(StoreUnavailable) as raised:
+            store.check()
+        message = str(raised.value)
+        assert "postgresql://dpc@127.0.0.1:1/gallery" in message and "hunter" not in message
+    finally:
+        store.close()
