@@ -16,6 +16,7 @@ from service.errors import ReferenceExists, StoreUnavailable, UnknownReference
 from service.gallery.postgres_store import PostgresStore
 from service.gallery.sqlite_store import SQLiteStore
 from service.gallery.store import SCHEMA_VERSION, StoreCorrupted, StoreIncompatible
+from tests.backends import Location
 
 MODEL = "a" * 64
 
@@ -259,11 +260,10 @@ def test_a_newer_schema_is_refused(store, location):
         location.store()
 
 
-def test_another_replica_hears_of_a_change(backend, location):
+def test_another_replica_hears_of_a_change(postgres_server, tmp_path):
     """With PostgreSQL a write wakes a replica waiting for changes (LISTEN/NOTIFY); without
     the notification the wait would run its whole minute."""
-    if backend.name != "postgresql":
-        pytest.skip("SQLite replicas find changes by the version check alone")
+    location = Location(tmp_path, postgres_server.create_database())
     writer, listener = location.store(), location.store()
     listener.wait_for_change(60)  # connects and listens: returns at once
     woken = threading.Event()
