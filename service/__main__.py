@@ -1,5 +1,6 @@
 """``python -m service``: check, then serve the app with uvicorn on the settings' host and port.
 
+``--host`` and ``--port`` override ``DPC_SERVER__HOST`` and ``DPC_SERVER__PORT`` (see ``--help``).
 Bad settings or a failed startup check (``service.api.startup``) end the process with one line on
 stderr and exit status 2, before anything listens; no traceback. A ``DPC_`` variable that names no
 setting is logged as a warning first.
@@ -7,9 +8,11 @@ setting is logged as a warning first.
 
 from __future__ import annotations
 
+import argparse
 import logging
 import os
 import sys
+from collections.abc import Sequence
 from typing import NoReturn
 
 import uvicorn
@@ -22,9 +25,11 @@ from service.api.app import create_app
 from service.settings import Settings
 
 
-def main() -> None:
+def main(argv: Sequence[str] | None = None) -> None:
+    arguments = parser().parse_args(argv)
     try:
-        settings = Settings()
+        flags = {key: value for key, value in vars(arguments).items() if value is not None}
+        settings = Settings(server=flags)  # merged over DPC_SERVER__*: the flags win
     except ValidationError as error:
         fail(f"invalid settings: {settings_message(error)}")
     except SettingsError as error:  # a DPC_* value that is not JSON where JSON is expected
@@ -47,6 +52,25 @@ def main() -> None:
         log_config=None,  # uvicorn's own lines go through our (JSON) handler
         access_log=False,  # logs.RequestLog writes one line a request, without the query
     )
+
+
+def parser() -> argparse.ArgumentParser:
+    """The command line: the server's address; every other setting is an environment variable."""
+    defaults = Settings.model_fields["server"].default
+    parser = argparse.ArgumentParser(
+        prog="python -m service",
+        description="Serve the DPC-MN pose service over HTTP (the API, /docs and the console at "
+        "/ui). Every setting is an environment variable DPC_<GROUP>__<FIELD> "
+        "(service/settings.py); the flags below override theirs.",
+        epilog="Exit status 2: bad settings or a failed start-up check, said in one line.",
+    )
+    parser.add_argument(
+        "--host", help=f"address to listen on (DPC_SERVER__HOST; default {defaults.host})"
+    )
+    parser.add_argument(
+        "--port", type=int, help=f"port to listen on (DPC_SERVER__PORT; default {defaults.port})"
+    )
+    return parser
 
 
 def settings_message(error: ValidationError) -> str:
