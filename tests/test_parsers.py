@@ -1,15 +1,21 @@
-"""Uploaded files: meshes are sampled, clouds used as is, bad files refused with a reason."""
+"""Uploaded files: meshes are sampled, clouds used as is, bad files refused with a reason.
+
+Every good file is written by another tool (trimesh, numpy, pypcd4; Open3D's PCD files in
+test_camera_files, since Open3D is not a runtime dependency); the bad ones are good ones
+damaged."""
 
 import io
 
 import numpy as np
 import pytest
 import trimesh
+from pypcd4 import Encoding, PointCloud
 
 from service.api.parsers import file_kind, read_points
 from service.errors import InvalidPoints
 
 COUNT = 256  # points a mesh is sampled to
+MAX_POINTS = 1000
 
 
 @pytest.fixture(scope="module")
@@ -19,7 +25,11 @@ def box() -> trimesh.Trimesh:
 
 @pytest.fixture(scope="module")
 def cloud() -> np.ndarray:
-    return np.random.default_rng(0).normal(size=(50, 3)).astype(np.float32)
+    """50 points in 5 rows of equal depth, as a camera's are: lzf finds something to compress."""
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(50, 3)).astype(np.float32)
+    points[:, 2] = np.repeat(rng.normal(size=5), 10)
+    return points
 
 
 def export(mesh: trimesh.Trimesh, file_type: str) -> bytes:
@@ -37,17 +47,17 @@ def on_box_surface(points: np.ndarray) -> bool:
 @pytest.mark.parametrize("file_type", ["stl", "stl_ascii", "obj", "ply"])
 def test_a_mesh_is_sampled_on_its_surface(box, file_type):
     suffix = "stl" if file_type.startswith("stl") else file_type
-    points = read_points(export(box, file_type), f"part.{suffix}", COUNT)
+    points = read_points(export(box, file_type), f"part.{suffix}", COUNT, MAX_POINTS)
     assert points.shape == (COUNT, 3)
     assert on_box_surface(points)
-    again = read_points(export(box, file_type), f"part.{suffix}", COUNT)
+    again = read_points(export(box, file_type), f"part.{suffix}", COUNT, MAX_POINTS)
     np.testing.assert_array_equal(points, again)  # the same file gives the same points
 
 
 def test_a_binary_stl_is_recognised_without_a_suffix(box):
     data = export(box, "stl")
     assert file_kind(data, None) == ".stl"
-    assert read_points(data, "upload", COUNT).shape == (COUNT, 3)
+    assert read_points(data, "upload", COUNT, MAX_POINTS).shape == (COUNT, 3)
 
 
 # text STLs from CAD tools that write their own code page: trimesh decodes them with
@@ -60,20 +70,20 @@ BROKEN_STL = b"solid part\n\xff\xfe facet normal 0 0 1\nendsolid\n"
 
 
 def test_a_text_stl_that_is_not_utf8_is_read():
-    points = read_points(LATIN1_STL, "part.stl", COUNT)
+    points = read_points(LATIN1_STL, "part.stl", COUNT, MAX_POINTS)
     assert points.shape == (COUNT, 3) and np.all(np.abs(points[:, 2]) < 1e-7)
 
 
 def test_a_malformed_text_stl_is_named():
     with pytest.raises(InvalidPoints) as caught:
-        read_points(BROKEN_STL, "part.stl", COUNT)
+        read_points(BROKEN_STL, "part.stl", COUNT, MAX_POINTS)
     assert "STL mesh is unusable" in str(caught.value)
     assert "module" not in str(caught.value)  # not "No module named 'charset_normalizer'"
 
 
 def test_a_ply_cloud_is_used_as_is(cloud):
     data = trimesh.PointCloud(cloud).export(file_type="ply")
-    np.testing.assert_allclose(read_points(data, "scan.ply", COUNT), cloud)
+    np.testing.assert_allclose(read_points(data, "scan.ply", COUNT, MAX_POINTS), cloud)
 
 
 def test_a_ply_cloud_is_recognised_by_content(cloud):
@@ -82,38 +92,43 @@ def test_a_ply_cloud_is_recognised_by_content(cloud):
 
 
 def pcd(cloud: np.ndarray, data: str, fields: str = "x y z") -> bytes:
+    """A PCD file written by pypcd4; fields other than x y z count the points."""
     names = fields.split()
     columns = {name: cloud[:, i] for i, name in enumerate("xyz")}
-    columns |= {
-        name: np.arange(len(cloud), dtype=np.float32) for name in names if name not in columns
-    }
-    table = np.stack([columns[name] for name in names], axis=1).astype(np.float32)
-    header = (
-        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n"
-        f"FIELDS {fields}\nSIZE {' '.join('4' * len(names))}\nTYPE {' '.join('F' * len(names))}\n"
-        f"COUNT {' '.join('1' * len(names))}\nWIDTH {len(table)}\nHEIGHT 1\n"
-        f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(table)}\nDATA {data}\n"
-    ).encode()
-    if data == "ascii":
-        return header + "".join(" ".join(f"{v:.9g}" for v in row) + "\n" for row in table).encode()
-    return header + table.astype("<f4").tobytes()
+    table = [columns.get(name, np.arange(len(cloud), dtype=np.float32)) for name in names]
+    buffer = io.BytesIO()
+    PointCloud.from_points(table, names, [np.float32] * len(names)).save(buffer, Encoding(data))
+    return buffer.getvalue()
 
 
-@pytest.mark.parametrize("data", ["ascii", "binary"])
+@pytest.mark.parametrize("data", ["ascii", "binary", "binary_compressed"])
 @pytest.mark.parametrize("fields", ["x y z", "intensity z y x"])
 def test_pcd_clouds(cloud, data, fields):
-    points = read_points(pcd(cloud, data, fields), "scan.pcd", COUNT)
-    np.testing.assert_array_equal(points.astype(np.float32), cloud)
+    written = pcd(cloud, data, fields)
+    assert f"DATA {data}\n".encode() in written
+    points = read_points(written, "scan.pcd", COUNT, MAX_POINTS)
+    np.testing.assert_allclose(points, cloud, atol=1e-9)  # ascii: 10 decimals
 
 
-def test_a_float64_binary_pcd(cloud):
-    header = (
-        "VERSION .7\nFIELDS x y z\nSIZE 8 8 8\nTYPE F F F\nCOUNT 1 1 1\n"
-        f"WIDTH {len(cloud)}\nHEIGHT 1\nPOINTS {len(cloud)}\nDATA binary\n"
-    ).encode()
-    data = header + cloud.astype("<f8").tobytes()
-    assert file_kind(data, None) == ".pcd"
-    np.testing.assert_array_equal(read_points(data, None, COUNT), cloud.astype(np.float64))
+def test_a_float64_pcd_without_a_suffix(cloud):
+    buffer = io.BytesIO()
+    PointCloud.from_points(cloud.astype(np.float64), ("x", "y", "z"), [np.float64] * 3).save(buffer)
+    assert file_kind(buffer.getvalue(), None) == ".pcd"
+    points = read_points(buffer.getvalue(), None, COUNT, MAX_POINTS)
+    np.testing.assert_array_equal(points, cloud.astype(np.float64))
+
+
+def test_an_organised_pcd_drops_its_empty_pixels(cloud):
+    """An organised cloud (HEIGHT > 1) marks pixels without a return with NaN, as PCL does."""
+    grid = np.full((10, 6, 3), np.nan, dtype=np.float32)
+    grid.reshape(-1, 3)[::2] = cloud[:30]
+    saved = PointCloud.from_xyz_points(grid.reshape(-1, 3))
+    saved.metadata = saved.metadata.derive(width=6, height=10)
+    buffer = io.BytesIO()
+    saved.save(buffer, Encoding.BINARY)
+    assert b"HEIGHT 10" in buffer.getvalue()
+    points = read_points(buffer.getvalue(), "organised.pcd", COUNT, MAX_POINTS)
+    np.testing.assert_array_equal(points, cloud[:30])
 
 
 def npy(array: np.ndarray) -> bytes:
@@ -123,8 +138,8 @@ def npy(array: np.ndarray) -> bytes:
 
 
 def test_an_npy_cloud(cloud):
-    np.testing.assert_array_equal(read_points(npy(cloud), "scan.npy", COUNT), cloud)
-    np.testing.assert_array_equal(read_points(npy(cloud), "no-suffix", COUNT), cloud)
+    np.testing.assert_array_equal(read_points(npy(cloud), "scan.npy", COUNT, MAX_POINTS), cloud)
+    np.testing.assert_array_equal(read_points(npy(cloud), "no-suffix", COUNT, MAX_POINTS), cloud)
 
 
 def truncated(ply: bytes) -> bytes:
@@ -146,14 +161,17 @@ def truncated(ply: bytes) -> bytes:
         (lambda c, b: npy(c)[:100], "a.npy", "unreadable"),
         (lambda c, b: pcd(c, "ascii").replace(b"FIELDS x y z", b"FIELDS a b c"), "a.pcd", "'x'"),
         (lambda c, b: pcd(c, "binary")[:-10], "a.pcd", "binary PCD data is"),
-        (lambda c, b: pcd(c, "ascii").rsplit(b"\n", 2)[0], "a.pcd", "49 rows, the header says 50"),
-        (lambda c, b: pcd(c, "ascii").replace(b"\n0", b"\nabc", 1), "a.pcd", "not a number"),
-        (lambda c, b: pcd(c, "binary_compressed"), "a.pcd", "binary_compressed is not"),
-        (lambda c, b: pcd(c, "ascii").replace(b"TYPE F F F", b"TYPE Q F F"), "a.pcd", "TYPE Q"),
+        (lambda c, b: pcd(c, "binary").replace(b"POINTS 50", b"POINTS 5000"), "a.pcd", "5000"),
+        (lambda c, b: pcd(c, "ascii").rsplit(b"\n", 2)[0], "a.pcd", "49 points, the header"),
+        (lambda c, b: pcd(c, "ascii").replace(b"\n0", b"\nabc", 1), "a.pcd", "unreadable"),
+        (lambda c, b: pcd(c, "binary_compressed")[:-10], "a.pcd", "compressed PCD data says"),
+        (lambda c, b: pcd(c, "ascii").replace(b"TYPE F F F", b"TYPE Q F F"), "a.pcd", "'Q'"),
+        (lambda c, b: pcd(c, "ascii").replace(b"SIZE 4 4 4", b"SIZE 4 4"), "a.pcd", "differ"),
+        (lambda c, b: pcd(c, "ascii").replace(b"COUNT 1 1 1", b"COUNT 1 1 9999"), "a.pcd", "COUNT"),
         (lambda c, b: b"VERSION 0.7\nFIELDS x y z\n", "a.pcd", "no DATA line"),
     ],
 )
 def test_bad_files_are_named(cloud, box, make, name, words):
     with pytest.raises(InvalidPoints) as caught:
-        read_points(make(cloud, box), name, COUNT)
+        read_points(make(cloud, box), name, COUNT, MAX_POINTS)
     assert words in str(caught.value)

@@ -12,6 +12,7 @@ import trimesh
 from fastapi.exceptions import RequestValidationError
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from pypcd4 import Encoding, PointCloud
 
 from service.api.parsers import read_points
 from service.api.routes.common import json_object
@@ -107,7 +108,7 @@ SUFFIXES = [None, "a.stl", "a.obj", "a.ply", "a.pcd", "a.npy", "upload", "a.txt"
 @FUZZ
 @given(st.binary(max_size=1500), st.sampled_from(SUFFIXES))
 def test_random_files(data, filename):
-    accept_or_refuse(read_points, data, filename, 64)
+    accept_or_refuse(read_points, data, filename, 64, MAX_POINTS)
 
 
 @FUZZ
@@ -117,7 +118,7 @@ def test_random_files(data, filename):
     st.binary(max_size=600),
 )
 def test_random_files_with_a_plausible_start(suffix, start, rest):
-    accept_or_refuse(read_points, start + rest, f"a.{suffix}", 64)
+    accept_or_refuse(read_points, start + rest, f"a.{suffix}", 64, MAX_POINTS)
 
 
 def _samples() -> dict[str, bytes]:
@@ -131,11 +132,12 @@ def _samples() -> dict[str, bytes]:
 
     npy = io.BytesIO()
     np.save(npy, cloud)
-    pcd_header = (
-        "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 20\nHEIGHT 1\n"
-        "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 20\nDATA {}\n"
-    )
-    ascii_rows = "".join(" ".join(f"{v:.6g}" for v in row) + "\n" for row in cloud)
+
+    def pcd(encoding: str) -> bytes:
+        buffer = io.BytesIO()
+        PointCloud.from_xyz_points(cloud).save(buffer, Encoding(encoding))
+        return buffer.getvalue()
+
     return {
         "a.stl": exported(box, "stl"),
         "b.stl": exported(box, "stl_ascii"),
@@ -144,8 +146,9 @@ def _samples() -> dict[str, bytes]:
         "b.ply": exported(box, "ply", encoding="ascii"),
         "c.ply": exported(trimesh.PointCloud(cloud), "ply"),
         "d.ply": exported(trimesh.PointCloud(cloud), "ply", encoding="ascii"),
-        "a.pcd": pcd_header.format("ascii").encode() + ascii_rows.encode(),
-        "b.pcd": pcd_header.format("binary").encode() + cloud.astype("<f4").tobytes(),
+        "a.pcd": pcd("ascii"),
+        "b.pcd": pcd("binary"),
+        "c.pcd": pcd("binary_compressed"),
         "a.npy": npy.getvalue(),
     }
 
@@ -181,12 +184,14 @@ def damaged(draw) -> tuple[bytes, str]:
 @given(damaged())
 def test_damaged_files(sample):
     data, filename = sample
-    accept_or_refuse(read_points, data, filename, 64)
+    accept_or_refuse(read_points, data, filename, 64, MAX_POINTS)
 
 
 @pytest.mark.parametrize("name", sorted(SAMPLES))
 def test_the_undamaged_samples_are_read(name):
-    checked(validate_points(read_points(SAMPLES[name], name, 64), MIN_POINTS, MAX_POINTS))
+    checked(
+        validate_points(read_points(SAMPLES[name], name, 64, MAX_POINTS), MIN_POINTS, MAX_POINTS)
+    )
 
 
 def _face_out_of_range() -> bytes:
@@ -202,13 +207,13 @@ def _face_out_of_range() -> bytes:
     ("data", "name", "words"),
     [  # what the fuzzing found once
         (_face_out_of_range(), "a.ply", "refers to a vertex"),
-        (SAMPLES["a.pcd"].replace(b"SIZE 4 4 4", b"SIZE 1e9 4 4"), "a.pcd", "SIZE line"),
-        (SAMPLES["a.pcd"].replace(b"COUNT 1 1 1", b"COUNT 1 -1 1"), "a.pcd", "COUNT line"),
-        (SAMPLES["b.pcd"].replace(b"POINTS 20", b"POINTS -1"), "a.pcd", "POINTS line"),
+        (SAMPLES["a.pcd"].replace(b"SIZE 4 4 4", b"SIZE 1e9 4 4"), "a.pcd", "'1e9'"),
+        (SAMPLES["a.pcd"].replace(b"COUNT 1 1 1", b"COUNT 1 -1 1"), "a.pcd", "COUNT: "),
+        (SAMPLES["b.pcd"].replace(b"POINTS 20", b"POINTS -1"), "a.pcd", "POINTS: "),
         (SAMPLES["a.pcd"].replace(b"FIELDS x y z", b"FIELDS x x z"), "a.pcd", "'y'"),
         (SAMPLES["b.pcd"].replace(b"FIELDS x y z", b"FIELDS x y x"), "a.pcd", "'z'"),
     ],
 )
 def test_what_fuzzing_found(data, name, words):
     with pytest.raises(InvalidPoints, match=words):
-        read_points(data, name, 64)
+        read_points(data, name, 64, MAX_POINTS)

@@ -1,7 +1,8 @@
 """Uploaded files to points: a mesh is sampled on its surface, a cloud is used as is.
 
-Meshes: STL, OBJ, PLY with faces. Clouds: PLY without faces, PCD (ascii or binary), NPY of
-shape (N, 3). The kind is told by the file name's suffix, else by the file's first bytes.
+Meshes: STL, OBJ, PLY with faces (trimesh). Clouds: PLY without faces (trimesh), PCD (ascii,
+binary or binary_compressed: ``service.api.pcd``, pypcd4), NPY of shape (N, 3) (numpy). The
+kind is told by the file name's suffix, else by the file's first bytes.
 Every unusable file raises ``InvalidPoints`` naming the problem; the points returned are not
 yet validated (``service.api.validation.validate_points`` does that).
 """
@@ -16,6 +17,7 @@ from pathlib import PurePath
 import numpy as np
 import trimesh
 
+from service.api.pcd import read_pcd
 from service.engine.sampling import MeshError, load_mesh, sample_surface_faces
 from service.errors import InvalidPoints
 
@@ -32,20 +34,25 @@ class Upload:
     face_index: np.ndarray | None = None  # the face each point was sampled on
 
 
-def read_points(data: bytes, filename: str | None, mesh_points: int, seed: int = 0) -> np.ndarray:
+def read_points(
+    data: bytes, filename: str | None, mesh_points: int, max_points: int, seed: int = 0
+) -> np.ndarray:
     """The points an uploaded file holds: (N, 3), a mesh sampled to ``mesh_points`` points."""
-    return read_upload(data, filename, mesh_points, seed).points
+    return read_upload(data, filename, mesh_points, max_points, seed).points
 
 
-def read_upload(data: bytes, filename: str | None, mesh_points: int, seed: int = 0) -> Upload:
-    """An uploaded file's points, with its mesh when it is one."""
+def read_upload(
+    data: bytes, filename: str | None, mesh_points: int, max_points: int, seed: int = 0
+) -> Upload:
+    """An uploaded file's points, with its mesh when it is one; ``max_points`` bounds what a
+    file's header may announce before its data is read."""
     if not data:
         raise InvalidPoints("the uploaded file is empty")
     kind = file_kind(data, filename)
     if kind == ".npy":
         return Upload(read_npy(data))
     if kind == ".pcd":
-        return Upload(read_pcd(data))
+        return Upload(read_pcd(data, max_points))
     if kind == ".ply" and not ply_has_faces(data):
         return Upload(read_ply_cloud(data))
     try:
@@ -114,113 +121,3 @@ def read_ply_cloud(data: bytes) -> np.ndarray:
     if vertices is None or len(vertices) == 0:
         raise InvalidPoints("the PLY file holds no vertices")
     return np.asarray(vertices)
-
-
-# PCD: https://pointclouds.org/documentation/tutorials/pcd_file_format.html
-PCD_TYPES = {(kind, size): f"{kind.lower()}{size}" for kind in "IU" for size in (1, 2, 4, 8)}
-PCD_TYPES |= {("F", 4): "f4", ("F", 8): "f8"}  # TYPE and SIZE to a numpy type code
-PCD_KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS")
-
-
-def read_pcd(data: bytes) -> np.ndarray:
-    """The x y z fields of a PCD file, DATA ascii or binary (binary_compressed is refused)."""
-    header, offset = _pcd_header(data)
-    fields = header["FIELDS"]
-    sizes = _pcd_numbers(header, "SIZE", ["4"] * len(fields))
-    types = header.get("TYPE", ["F"] * len(fields))
-    counts = _pcd_numbers(header, "COUNT", ["1"] * len(fields))
-    if not len(fields) == len(sizes) == len(types) == len(counts):
-        raise InvalidPoints("the PCD header's FIELDS, SIZE, TYPE and COUNT differ in length")
-    for axis in ("x", "y", "z"):
-        if axis not in fields:
-            raise InvalidPoints(f"the PCD file has no '{axis}' field (FIELDS {' '.join(fields)})")
-    if "POINTS" in header:
-        (count,) = _pcd_numbers(header, "POINTS", [], minimum=0)
-    else:
-        (width,) = _pcd_numbers(header, "WIDTH", ["0"], minimum=0)
-        (height,) = _pcd_numbers(header, "HEIGHT", ["1"], minimum=0)
-        count = width * height
-    dtype = []
-    for name, size, kind, repeat in zip(fields, sizes, types, counts, strict=True):
-        code = PCD_TYPES.get((kind.upper(), size))
-        if code is None:
-            raise InvalidPoints(f"the PCD field '{name}' has TYPE {kind} SIZE {size}")
-        dtype.append((name, "<" + code, (repeat,)) if repeat > 1 else (name, "<" + code))
-    try:
-        record = np.dtype(dtype)
-    except (ValueError, TypeError) as error:  # a field named twice, a record too large
-        raise InvalidPoints(f"the PCD header's fields are unusable: {error}") from error
-    encoding = header["DATA"][0].lower()
-    body = data[offset:]
-    if encoding == "ascii":
-        table = _pcd_ascii(body, record, count)
-        columns = [fields.index(axis) for axis in ("x", "y", "z")]
-        starts = np.cumsum([0, *counts])
-        return table[:, [starts[c] for c in columns]]
-    if encoding == "binary":
-        if len(body) < count * record.itemsize:
-            raise InvalidPoints(
-                f"the binary PCD data is {len(body)} bytes, {count} points need "
-                f"{count * record.itemsize}"
-            )
-        table = np.frombuffer(body, dtype=record, count=count)
-        return np.stack([table[axis].astype(np.float64) for axis in ("x", "y", "z")], axis=1)
-    raise InvalidPoints(f"PCD DATA {encoding} is not supported: save as ascii or binary")
-
-
-def _pcd_numbers(
-    header: dict[str, list[str]], key: str, default: list[str], minimum: int = 1
-) -> list[int]:
-    """A header line of whole numbers (one value for POINTS, WIDTH, HEIGHT), or InvalidPoints."""
-    values = header.get(key, default)
-    single = key in ("POINTS", "WIDTH", "HEIGHT")
-    if (
-        (single and len(values) != 1)
-        or not all(v.isascii() and v.isdigit() for v in values)
-        or any(int(v) < minimum for v in values)
-    ):
-        shown = " ".join(values)[:40]
-        raise InvalidPoints(
-            f"the PCD header's {key} line is '{shown}': "
-            f"{'a whole number' if single else 'whole numbers'} of at least {minimum} expected"
-        )
-    return [int(v) for v in values]
-
-
-def _pcd_header(data: bytes) -> tuple[dict[str, list[str]], int]:
-    """The header's keys and values, and the offset of the first data byte."""
-    header: dict[str, list[str]] = {}
-    offset = 0
-    while offset < len(data):
-        end = data.find(b"\n", offset)
-        end = len(data) if end < 0 else end
-        line = data[offset:end].decode("ascii", errors="replace").strip()
-        offset = end + 1
-        if not line or line.startswith("#"):
-            continue
-        key, *values = line.split()
-        if key.upper() == "DATA":
-            header["DATA"] = values or ["?"]
-            if "FIELDS" not in header:
-                raise InvalidPoints("the PCD header has no FIELDS line")
-            return header, offset
-        if key.upper() not in PCD_KEYS:
-            raise InvalidPoints(f"the PCD header has an unknown line '{line[:40]}'")
-        header[key.upper()] = values
-    raise InvalidPoints("the PCD file has no DATA line")
-
-
-def _pcd_ascii(body: bytes, record: np.dtype, count: int) -> np.ndarray:
-    """An ascii PCD body as a float64 table, one row a point, one column a value."""
-    width = sum(int(np.prod(record[name].shape or (1,))) for name in record.names)
-    rows = [line.split() for line in body.decode("ascii", errors="replace").splitlines()]
-    rows = [row for row in rows if row]
-    if len(rows) != count:
-        raise InvalidPoints(f"the ascii PCD data has {len(rows)} rows, the header says {count}")
-    if any(len(row) != width for row in rows):
-        raise InvalidPoints(f"an ascii PCD row does not have {width} values")
-    try:
-        return np.array(rows, dtype=np.float64).reshape(count, width)
-    except ValueError as error:
-        message = f"the ascii PCD data holds a value that is not a number: {error}"
-        raise InvalidPoints(message) from error

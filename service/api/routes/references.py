@@ -109,11 +109,11 @@ def _register(
     """Validate, read the points, compute and store the reference (in a worker thread)."""
     known_fields(fields, ReferenceRequest.model_fields)
     identity = parse(ReferenceIdentity, {k: v for k, v in fields.items() if k != "points"})
+    limits = settings.limits
     if source is None:
         upload = Upload(require(fields, "points"))
     else:
-        upload = read_upload(*source, mesh_points=settings.gallery.reference_points)
-    limits = settings.limits
+        upload = read_upload(*source, settings.gallery.reference_points, limits.max_points)
     points = validate_points(upload.points, limits.min_points, limits.max_points)
     return catalog.register(
         identity.name,
