@@ -122,6 +122,16 @@ class ServerSettings(BaseModel):
     log_format: Literal["json", "text"] = "json"  # json: one object a line
 
 
+OPEN_RECENT_ALIGNMENTS = 20
+
+
+class ConsoleSettings(BaseModel):
+    enabled: bool = True  # the web console at /ui (static files; it calls the API like a client)
+    # alignments kept in memory for the console to replay (their points and answers); default:
+    # 20 while the service is open (no API key: a bench), 0 once keys are set (production)
+    recent_alignments: int | None = Field(None, ge=0, le=1000)
+
+
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="DPC_", env_nested_delimiter="__")
 
@@ -131,6 +141,7 @@ class Settings(BaseSettings):
     limits: LimitSettings = LimitSettings()
     server: ServerSettings = ServerSettings()
     auth: AuthSettings = AuthSettings()
+    console: ConsoleSettings = ConsoleSettings()
 
     @property
     def confidence_path(self) -> Path:
@@ -142,6 +153,12 @@ class Settings(BaseSettings):
     def manifest_path(self) -> Path:
         """The model's manifest: ``model.manifest``, else ``manifest.json`` beside the model."""
         return self.model.manifest or self.model.path.parent / "manifest.json"
+
+    @property
+    def recent_alignments(self) -> int:
+        """How many alignments the service keeps for replay (``console.recent_alignments``)."""
+        chosen = self.console.recent_alignments
+        return chosen if chosen is not None else (0 if self.auth.keys else OPEN_RECENT_ALIGNMENTS)
 
     @property
     def align_slots(self) -> int:

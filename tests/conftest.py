@@ -42,3 +42,18 @@ def backend(request, tmp_path_factory) -> Backend:
     """Each gallery store backend in turn: SQLite, then PostgreSQL."""
     server = request.getfixturevalue("postgres_server") if request.param == "postgresql" else None
     return Backend(request.param, tmp_path_factory, server)
+
+
+@pytest.fixture(scope="session")
+def service(tmp_path_factory):
+    """One real server (uvicorn in a thread, the shipped model and gallery, open, keeping recent
+    alignments) shared by the tests that only add references of their own names."""
+    from service.settings import GallerySettings, Settings
+    from tests.servers import MODEL, ThreadServer
+
+    if not MODEL.path.exists():
+        pytest.skip(f"no ONNX model at {MODEL.path}")
+    data_dir = tmp_path_factory.mktemp("service")
+    server = ThreadServer(Settings(gallery=GallerySettings(data_dir=data_dir, self_check_poses=1)))
+    yield server
+    server.stop()

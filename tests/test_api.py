@@ -505,7 +505,8 @@ def test_openapi_document(api):
         assert name in schemas, name
     assert "HTTPValidationError" not in schemas  # every error answer is {"detail": "..."}
     align = paths["/align"]["post"]
-    assert set(align["requestBody"]["content"]) == {"application/json", "application/octet-stream"}
+    kinds = {"application/json", "application/octet-stream", "multipart/form-data"}
+    assert set(align["requestBody"]["content"]) == kinds
     assert {"200", "404", "409", "413", "422"} <= set(align["responses"])
     register = paths["/references"]["post"]
     assert set(register["requestBody"]["content"]) == {"application/json", "multipart/form-data"}

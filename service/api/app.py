@@ -29,9 +29,11 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service.api import auth, logs, startup
 from service.api.dependencies import Loading, NotReady
 from service.api.limiter import Busy, Limiter, TimedOut
-from service.api.routes import align, health, references
+from service.api.recent import RecentAlignments
+from service.api.routes import align, alignments, health, points, references
 from service.api.routes.common import UnsupportedMediaType
-from service.api.schemas import AlignRequest, ReferenceRequest
+from service.api.schemas import AlignOptions, AlignRequest, ReferenceRequest
+from service.api.uploads import cloud_upload_schema
 from service.engine.engine import Engine
 from service.engine.mapping import Mapper
 from service.errors import (
@@ -53,6 +55,7 @@ LOAD_RETRY_S = 2.0  # between tries to load the gallery while its store cannot b
 STATUS = {  # the one status code of each error the engine, store and routes raise
     InvalidPoints: 422,
     UnknownReference: 404,
+    alignments.UnknownAlignment: 404,
     EmptyGallery: 409,
     ReferenceExists: 409,
     GalleryFull: 409,
@@ -82,7 +85,9 @@ def create_app(
     )
     app.state.settings = settings
     app.state.prepared = prepared
-    for router in (align.router, references.router, health.router):
+    app.state.recent = RecentAlignments(settings.recent_alignments)
+    routers = (align.router, points.router, alignments.router, references.router, health.router)
+    for router in routers:
         app.include_router(router)
     _add_error_handlers(app)
     app.add_middleware(BodyLimit, max_bytes=settings.limits.max_body_bytes)
@@ -345,5 +350,10 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
             },
         },
     }
+    options = AlignOptions.model_json_schema()["properties"]
+    options["viewpoint"] = {"type": "string", "description": "x,y,z: where the sensor was"}
+    options["candidates"]["description"] += " (repeat the field for each name)"
+    schemas["CloudUpload"] = cloud_upload_schema("CloudUpload")
+    schemas["AlignUpload"] = cloud_upload_schema("AlignUpload", options)
     app.openapi_schema = document
     return document

@@ -11,6 +11,7 @@ from typing import Annotated
 from fastapi import Depends, Request
 
 from service.api.limiter import Limiter
+from service.api.recent import RecentAlignments
 from service.engine.engine import Engine
 from service.gallery.catalog import Catalog
 from service.settings import Settings
@@ -68,9 +69,15 @@ def get_limiter(request: Request) -> Limiter:
     return request.app.state.limiter
 
 
+def get_recent(request: Request) -> RecentAlignments:
+    """The last alignments, kept for the console (``service.api.recent``)."""
+    return request.app.state.recent
+
+
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 LoadingDep = Annotated[Loading, Depends(get_loading)]
 LoadingCatalogDep = Annotated[Catalog, Depends(get_loading_catalog)]
 CatalogDep = Annotated[Catalog, Depends(get_catalog)]
 EngineDep = Annotated[Engine, Depends(get_engine)]
 LimiterDep = Annotated[Limiter, Depends(get_limiter)]
+RecentDep = Annotated[RecentAlignments, Depends(get_recent)]

@@ -60,6 +60,23 @@ class AlignRequest(AlignOptions):
     points: Points
 
 
+class DepthCamera(BaseModel):
+    """The camera of a depth image sent as a file: pinhole intrinsics, in pixels, and the unit."""
+
+    model_config = ConfigDict(allow_inf_nan=False)
+
+    fx: float = Field(gt=0, description="horizontal focal length (x), in pixels")
+    fy: float = Field(gt=0, description="vertical focal length (y), in pixels")
+    cx: float = Field(description="principal point's column (x); the top-left pixel is 0")
+    cy: float = Field(description="principal point's row (y); the top-left pixel is 0")
+    depth_scale: float | None = Field(
+        None,
+        gt=0,
+        description="scene units per depth value; default 0.001 for a 16-bit image "
+        "(millimetres to metres) and 1 for a float one (metres)",
+    )
+
+
 class ReferenceIdentity(BaseModel):
     """What ``POST /references`` takes besides the points."""
 
@@ -157,6 +174,31 @@ class ReferenceResponse(ReferenceInfo):
 
 class ReferenceList(BaseModel):
     references: list[ReferenceInfo]
+
+
+class RecentAlignment(BaseModel):
+    """One of the last alignments the service answered (``GET /alignments``)."""
+
+    id: int
+    time: str = Field(description="when it was answered, ISO 8601 UTC")
+    source: str = Field(description="'json', 'raw' or 'file <name>'")
+    num_points: int
+    viewpoint: Vector3 | None
+    label: str
+    verdict: str
+    confidence: float | None
+    alignment_error_normalized: float
+
+
+class RecentAlignments(BaseModel):
+    capacity: int = Field(
+        description="how many the service keeps; 0: off (console.recent_alignments)"
+    )
+    alignments: list[RecentAlignment] = Field(description="newest first")
+
+
+class RecentAlignmentDetail(RecentAlignment):
+    answer: AlignResponse
 
 
 class ModelIdentity(BaseModel):

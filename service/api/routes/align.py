@@ -8,9 +8,12 @@ import numpy as np
 from fastapi import APIRouter, Query, Request
 
 from service.api.auth import ReadAccess
-from service.api.dependencies import EngineDep, LimiterDep, SettingsDep
+from service.api.dependencies import EngineDep, LimiterDep, RecentDep, SettingsDep
+from service.api.recent import RecentAlignments
 from service.api.routes.common import (
     JSON,
+    MULTIPART,
+    RAW,
     body_kind,
     errors,
     invalid,
@@ -27,13 +30,14 @@ from service.api.schemas import (
     CandidateFit,
     ReferenceName,
 )
+from service.api.uploads import CAMERA_FIELDS, CLOUD_FILES, Form, form_points, read_form
 from service.api.validation import points_from_raw, validate_points
 from service.engine.engine import Alignment, Engine
-from service.settings import LimitSettings
+from service.settings import Settings
 
 router = APIRouter(tags=["align"])
 
-RAW = "application/octet-stream"
+OPTIONS = tuple(AlignOptions.model_fields)  # candidates top_k refine viewpoint min_confidence
 BODY = {
     "required": True,
     "content": {
@@ -42,6 +46,7 @@ BODY = {
             "schema": {"type": "string", "format": "binary"},
             "description": "little-endian float32 x y z triples; options as query parameters",
         },
+        MULTIPART: {"schema": {"$ref": "#/components/schemas/AlignUpload"}},
     },
 }
 
@@ -59,6 +64,7 @@ async def align(
     engine: EngineDep,
     settings: SettingsDep,
     limiter: LimiterDep,
+    recent: RecentDep,
     # for a raw body; a JSON body carries them as fields, which take precedence
     candidates: Annotated[list[ReferenceName] | None, Query()] = None,
     top_k: Annotated[int | None, Query(ge=1)] = None,
@@ -68,10 +74,15 @@ async def align(
     ] = None,
     min_confidence: Annotated[float | None, Query(ge=0, le=1)] = None,
 ) -> AlignResponse:
-    """JSON ``{"points": [[x, y, z], ...], ...}``, or a raw body of little-endian float32
-    ``x y z`` triples with the options as query parameters (``viewpoint=x,y,z``)."""
-    kind = body_kind(request, JSON, RAW)
-    body = await request.body()
+    """JSON ``{"points": [[x, y, z], ...], ...}``; a raw body of little-endian float32 ``x y z``
+    triples with the options as query parameters (``viewpoint=x,y,z``); or a multipart upload:
+    a cloud, mesh or depth-image ``file`` (a depth image with ``fx``, ``fy``, ``cx``, ``cy``;
+    its viewpoint is the camera, ``[0, 0, 0]``), the options as fields or query parameters."""
+    kind = body_kind(request, JSON, RAW, MULTIPART)
+    if kind == MULTIPART:
+        body = await read_form(request, CLOUD_FILES, CAMERA_FIELDS + OPTIONS, "the cloud")
+    else:
+        body = await request.body()
     query = {
         "candidates": candidates,
         "top_k": top_k,
@@ -80,17 +91,31 @@ async def align(
         "min_confidence": min_confidence,
     }
     query = {key: value for key, value in query.items() if value is not None}
-    return await limiter.align(_align, engine, settings.limits, body, kind, query)
+    return await limiter.align(_align, engine, settings, body, kind, query, recent)
 
 
 def _align(
-    engine: Engine, limits: LimitSettings, body: bytes, kind: str, query: dict[str, Any]
+    engine: Engine,
+    settings: Settings,
+    body: bytes | Form,
+    kind: str,
+    query: dict[str, Any],
+    recent: RecentAlignments,
 ) -> AlignResponse:
     """Parse and validate the body, align (in a worker thread): CPU-bound from end to end."""
-    if kind == RAW:
+    limits = settings.limits
+    if isinstance(body, Form):
+        source = f"file {body.files['file'][1] or ''}".strip()
+        points, implied = form_points(body, settings)
+        options = parse(AlignOptions, {**query, **form_options(body)})
+        if options.viewpoint is None and implied is not None:
+            options.viewpoint = implied
+    elif kind == RAW:
+        source = "raw"
         options = parse(AlignOptions, query)
         points = points_from_raw(body, limits.min_points, limits.max_points)
     else:
+        source = "json"
         data = json_object(body)
         known_fields(data, AlignRequest.model_fields)
         options = parse(AlignOptions, {**query, **{k: v for k, v in data.items() if k != "points"}})
@@ -104,7 +129,25 @@ def _align(
         viewpoint=viewpoint,
         min_confidence=options.min_confidence,
     )
-    return alignment_response(alignment)
+    answer = alignment_response(alignment)
+    recent.add(points, options.viewpoint, source, answer)
+    return answer
+
+
+def form_options(form: Form) -> dict[str, Any]:
+    """The options a multipart body gives as text fields (``candidates`` may repeat)."""
+    options: dict[str, Any] = {}
+    for name in OPTIONS:
+        value = form.value(name)
+        if value is None:
+            continue
+        if name == "candidates":
+            options[name] = form.fields[name]
+        elif name == "viewpoint":
+            options[name] = vector(value, name)
+        else:
+            options[name] = value
+    return options
 
 
 def vector(text: str, name: str) -> list[float]:

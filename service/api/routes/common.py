@@ -22,6 +22,8 @@ class UnsupportedMediaType(ValueError):
 
 
 JSON = "application/json"
+RAW = "application/octet-stream"
+MULTIPART = "multipart/form-data"
 
 
 def body_kind(request: Request, *accepted: str) -> str:

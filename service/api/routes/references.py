@@ -4,9 +4,8 @@ from __future__ import annotations
 
 from typing import Annotated
 
+import numpy as np
 from fastapi import APIRouter, Query, Request, Response, status
-from starlette.datastructures import UploadFile
-from starlette.exceptions import HTTPException
 
 from service.api.auth import AdminAccess, ReadAccess
 from service.api.dependencies import CatalogDep, EngineDep, LimiterDep, SettingsDep
@@ -14,9 +13,10 @@ from service.api.limiter import Job
 from service.api.parsers import Upload, read_upload
 from service.api.routes.common import (
     JSON,
+    MULTIPART,
+    RAW,
     body_kind,
     errors,
-    invalid,
     json_object,
     known_fields,
     parse,
@@ -30,7 +30,9 @@ from service.api.schemas import (
     ReferenceResponse,
     SelfCheck,
 )
+from service.api.uploads import read_form
 from service.api.validation import validate_points
+from service.engine.engine import Engine
 from service.engine.reference import Reference
 from service.errors import UnknownReference
 from service.gallery.catalog import Catalog
@@ -38,8 +40,8 @@ from service.settings import Settings
 
 router = APIRouter(prefix="/references", tags=["references"])
 
-MULTIPART = "multipart/form-data"
-UPLOAD_FIELDS = ("name", "file")  # the multipart body's fields (ReferenceUpload in the OpenAPI)
+MAX_SELF_CHECK_POSES = 10
+
 BODY = {
     "required": True,
     "content": {
@@ -70,19 +72,9 @@ async def register(
 ) -> ReferenceResponse:
     """JSON ``{"name", "points"}``, or multipart ``name`` + ``file`` (STL, OBJ, PLY, PCD, NPY)."""
     if body_kind(request, JSON, MULTIPART) == MULTIPART:
-        try:
-            async with request.form(max_files=1, max_fields=4) as form:
-                known_fields(form, UPLOAD_FIELDS)
-                name, upload = form.get("name"), form.get("file")
-                if not isinstance(upload, UploadFile):
-                    raise invalid("upload the mesh or cloud as a file field", "file")
-                source = (await upload.read(), upload.filename)
-        except HTTPException as error:  # Starlette's 400 for a malformed multipart body
-            raise invalid(
-                f"the multipart body is unusable ({error.detail}): send a 'name' field and a "
-                "'file' field"
-            ) from None
-        fields = {} if name is None else {"name": name}
+        form = await read_form(request, ("file",), ("name",), "the mesh or cloud")
+        name = form.value("name")
+        fields, source = ({} if name is None else {"name": name}), form.files["file"]
     else:
         fields, source = json_object(await request.body()), None
     poses = settings.gallery.self_check_poses if self_check else 0
@@ -146,10 +138,46 @@ async def list_references(engine: EngineDep) -> ReferenceList:
     dependencies=[ReadAccess],
 )
 async def describe(name: str, engine: EngineDep) -> ReferenceInfo:
-    reference = engine.get(name)
-    if reference is None:
-        raise UnknownReference(f"no reference named '{name}'")
-    return _info(reference)
+    return _info(_known(engine, name))
+
+
+@router.get(
+    "/{name}/points",
+    response_class=Response,
+    summary="The points a reference was registered with, as raw float32",
+    responses={
+        200: {
+            "content": {RAW: {"schema": {"type": "string", "format": "binary"}}},
+            "description": "little-endian float32 x y z triples in the model frame (their sha256 "
+            "is the reference's points_sha256)",
+        }
+    }
+    | errors(401, 404, 503),
+    dependencies=[ReadAccess],
+)
+async def reference_points(name: str, engine: EngineDep) -> Response:
+    reference = _known(engine, name)
+    return Response(np.asarray(reference.points, "<f4").tobytes(), media_type=RAW)
+
+
+@router.get(
+    "/{name}/self_check",
+    response_model=list[SelfCheck],
+    summary="Align a reference against random poses of itself (as at registration)",
+    responses=errors(401, 404, 503, 504),
+    dependencies=[ReadAccess],
+)
+async def self_check(
+    name: str,
+    engine: EngineDep,
+    settings: SettingsDep,
+    limiter: LimiterDep,
+    poses: Annotated[int | None, Query(ge=1, le=MAX_SELF_CHECK_POSES)] = None,
+) -> list[SelfCheck]:
+    reference = _known(engine, name)
+    count = poses or settings.gallery.self_check_poses or 1
+    checks = await limiter.align(engine.self_check, reference, count)
+    return [SelfCheck.model_validate(check) for check in checks]
 
 
 @router.delete(
@@ -167,6 +195,13 @@ async def remove(name: str, catalog: CatalogDep, limiter: LimiterDep) -> Respons
 
 def _remove(job: Job, catalog: Catalog, name: str) -> None:
     catalog.remove(name, job.commit)
+
+
+def _known(engine: Engine, name: str) -> Reference:
+    reference = engine.get(name)
+    if reference is None:
+        raise UnknownReference(f"no reference named '{name}'")
+    return reference
 
 
 def _info(reference: Reference) -> ReferenceInfo:

@@ -1,0 +1,59 @@
+"""The last alignments the service answered, kept in memory so that the console can replay them.
+
+A bounded ring (``Settings.recent_alignments`` entries; the oldest goes first): each entry keeps
+the points as aligned (float32), the viewpoint used, where the points came from and the answer.
+It holds every caller's points, so it is off once API keys are configured, unless asked for.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.api.schemas import AlignResponse
+
+
+@dataclass(frozen=True)
+class Recorded:
+    id: int
+    time: float  # seconds since the epoch
+    source: str  # "json", "raw" or "file <name>"
+    points: np.ndarray  # (N, 3) float32, as aligned
+    viewpoint: list[float] | None
+    answer: AlignResponse
+
+
+class RecentAlignments:
+    """A thread-safe ring of ``Recorded`` alignments; a capacity of 0 keeps nothing."""
+
+    def __init__(self, capacity: int):
+        self.capacity = capacity
+        self._entries: deque[Recorded] = deque(maxlen=capacity or None)
+        self._lock = threading.Lock()
+        self._next_id = 1
+
+    def add(
+        self,
+        points: np.ndarray,
+        viewpoint: list[float] | None,
+        source: str,
+        answer: AlignResponse,
+    ) -> None:
+        if not self.capacity:
+            return
+        with self._lock:
+            entry = Recorded(self._next_id, time.time(), source, points, viewpoint, answer)
+            self._entries.append(entry)
+            self._next_id += 1
+
+    def newest_first(self) -> list[Recorded]:
+        with self._lock:
+            return list(reversed(self._entries))
+
+    def get(self, entry_id: int) -> Recorded | None:
+        with self._lock:
+            return next((entry for entry in self._entries if entry.id == entry_id), None)

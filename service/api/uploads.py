@@ -1,0 +1,118 @@
+"""Multipart bodies: the files and text fields of an upload, and the points its ``file`` gives.
+
+``POST /references`` takes a ``name`` and a mesh or cloud ``file``. ``POST /align`` and
+``POST /points`` take a cloud or mesh ``file``, or a depth image with its camera's ``fx``, ``fy``,
+``cx``, ``cy`` (``depth_scale`` and a ``mask`` image optional: ``service.api.depth``). A field
+the route does not know is refused (422), so a misspelt ``fx`` is never silently ignored.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from fastapi import Request
+from starlette.datastructures import UploadFile
+from starlette.exceptions import HTTPException
+
+from service.api import depth
+from service.api.parsers import read_points
+from service.api.routes.common import invalid, known_fields, parse
+from service.api.schemas import DepthCamera
+from service.api.validation import validate_points
+from service.settings import Settings
+
+CAMERA_FIELDS = tuple(DepthCamera.model_fields)  # fx fy cx cy depth_scale
+CLOUD_FILES = ("file", "mask")
+MAX_FIELDS = 64
+FILE_DESCRIPTION = (
+    "a cloud (.ply, .pcd, .npy of shape (N, 3)), a mesh (.stl, .obj, .ply), or a depth image "
+    "(16-bit PNG in millimetres; 32-bit float TIFF or NPY (H, W) in metres) sent with fx, fy, "
+    "cx and cy"
+)
+ORIGIN = [0.0, 0.0, 0.0]  # a depth image's cloud is in the camera's frame
+
+
+@dataclass(frozen=True)
+class Form:
+    files: dict[str, tuple[bytes, str | None]]  # field -> (content, file name)
+    fields: dict[str, list[str]]  # field -> its values, in order
+
+    def value(self, name: str) -> str | None:
+        """A text field's last value."""
+        values = self.fields.get(name)
+        return values[-1] if values else None
+
+
+async def read_form(
+    request: Request, files: tuple[str, ...], fields: tuple[str, ...], what: str
+) -> Form:
+    """The multipart body's files and fields; 422 for a malformed body, an unknown field, a
+    file where text belongs (or the reverse), or no ``file``. ``what`` names the file wanted."""
+    found: dict[str, tuple[bytes, str | None]] = {}
+    texts: dict[str, list[str]] = defaultdict(list)
+    expected = ", ".join(f"'{name}'" for name in (*files, *fields))
+    try:
+        async with request.form(max_files=len(files), max_fields=MAX_FIELDS) as form:
+            known_fields(form.keys(), (*fields, *files))
+            for key, value in form.multi_items():
+                if (key in files) != isinstance(value, UploadFile):
+                    kind = "a file" if key in files else "a text field"
+                    raise invalid(f"send '{key}' as {kind}", key)
+                if isinstance(value, UploadFile):
+                    found[key] = (await value.read(), value.filename)
+                else:
+                    texts[key].append(value)
+    except HTTPException as error:  # Starlette's 400: a malformed body, too many files or fields
+        raise invalid(f"the multipart body is unusable ({error.detail}): send {expected}") from None
+    if "file" not in found:
+        raise invalid(f"upload {what} as a file field", "file")
+    return Form(found, dict(texts))
+
+
+def form_points(form: Form, settings: Settings) -> tuple[np.ndarray, list[float] | None]:
+    """The checked points of the form's ``file`` (float32), and the viewpoint the file
+    implies: the origin for a depth image, else None."""
+    data, filename = form.files["file"]
+    camera = {name: form.value(name) for name in CAMERA_FIELDS if name in form.fields}
+    mask = form.files.get("mask")
+    limits = settings.limits
+    if camera or mask or depth.is_image(data, filename):
+        if not camera:
+            raise invalid(
+                "a depth image needs its camera's intrinsics: send fx, fy, cx and cy", "fx"
+            )
+        image = depth.read_depth(data, filename)
+        keep = None if mask is None else depth.read_image(*mask, "mask")
+        points = depth.depth_points(image, parse(DepthCamera, camera), keep, limits.max_points)
+        viewpoint = ORIGIN
+    else:
+        points = read_points(data, filename, settings.gallery.reference_points, limits.max_points)
+        viewpoint = None
+    return validate_points(points, limits.min_points, limits.max_points), viewpoint
+
+
+def cloud_upload_schema(title: str, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The OpenAPI schema of a multipart body with a cloud, mesh or depth-image ``file``."""
+    camera = DepthCamera.model_json_schema()["properties"]
+    return {
+        "title": title,
+        "type": "object",
+        "required": ["file"],
+        "properties": {
+            "file": {"type": "string", "format": "binary", "description": FILE_DESCRIPTION},
+            "mask": {
+                "type": "string",
+                "format": "binary",
+                "description": "depth images only: an image of the same size (PNG, TIFF, NPY); "
+                "pixels where it is 0 are left out",
+            },
+            **{
+                name: {**schema, "description": f"depth images: {schema.get('description')}"}
+                for name, schema in camera.items()
+            },
+            **(extra or {}),
+        },
+    }
