@@ -13,12 +13,14 @@ import logging
 import threading
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, RedirectResponse
+from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from prometheus_client import CollectorRegistry, Gauge
 from prometheus_fastapi_instrumentator import Instrumentator
@@ -49,6 +51,8 @@ from service.gallery.store import GalleryStore, StoreCorrupted, StoreIncompatibl
 from service.settings import Settings
 
 log = logging.getLogger("service")
+
+CONSOLE = Path(__file__).resolve().parent.parent / "console"  # static files, no build step
 
 VERSION = "0.1.0"
 LOAD_RETRY_S = 2.0  # between tries to load the gallery while its store cannot be reached
@@ -89,6 +93,8 @@ def create_app(
     routers = (align.router, points.router, alignments.router, references.router, health.router)
     for router in routers:
         app.include_router(router)
+    if settings.console.enabled:
+        _add_console(app)
     _add_error_handlers(app)
     app.add_middleware(BodyLimit, max_bytes=settings.limits.max_body_bytes)
     _add_metrics(app)  # counts every answer, the 413s included
@@ -286,6 +292,15 @@ def validation_message(errors: Any) -> str:
             message = "a reference name is 1 to 64 characters of A-Z a-z 0-9 . _ -"
         parts.append(f"{where}: {message}" if where else message)
     return "; ".join(parts) or "invalid request"
+
+
+def _add_console(app: FastAPI) -> None:
+    """The web console's static files at ``/ui/`` (``service/console``), and ``/`` leading there."""
+    app.mount("/ui", StaticFiles(directory=CONSOLE, html=True), name="console")
+
+    @app.get("/", include_in_schema=False)
+    async def home() -> RedirectResponse:
+        return RedirectResponse("/ui/")
 
 
 def _add_metrics(app: FastAPI) -> None:
