@@ -1,4 +1,5 @@
-"""Shared fixtures: real meshes from pybullet_data, sampled as the service samples them."""
+"""Shared fixtures: real meshes from pybullet_data, sampled as the service samples them, and
+two real servers for the tests that only add references of their own names."""
 
 from __future__ import annotations
 
@@ -8,7 +9,9 @@ import numpy as np
 import pytest
 
 from service.engine.sampling import load_mesh, sample_surface
+from service.settings import AuthSettings, GallerySettings, Settings
 from tests.backends import BACKENDS, Backend
+from tests.servers import MODEL, ThreadServer
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -48,12 +51,29 @@ def backend(request, tmp_path_factory) -> Backend:
 def service(tmp_path_factory):
     """One real server (uvicorn in a thread, the shipped model and gallery, open, keeping recent
     alignments) shared by the tests that only add references of their own names."""
-    from service.settings import GallerySettings, Settings
-    from tests.servers import MODEL, ThreadServer
-
     if not MODEL.path.exists():
         pytest.skip(f"no ONNX model at {MODEL.path}")
     data_dir = tmp_path_factory.mktemp("service")
     server = ThreadServer(Settings(gallery=GallerySettings(data_dir=data_dir, self_check_poses=1)))
+    yield server
+    server.stop()
+
+
+ADMIN_KEY, READ_KEY = "tests-admin-key-0123", "tests-read-key-4567"
+
+
+@pytest.fixture(scope="session")
+def keyed_service(tmp_path_factory):
+    """A server with an admin and a read key and an empty gallery (so it starts at once)."""
+    if not MODEL.path.exists():
+        pytest.skip(f"no ONNX model at {MODEL.path}")
+    data_dir = tmp_path_factory.mktemp("keyed")
+    server = ThreadServer(
+        Settings(
+            model=MODEL.model_copy(update={"gallery": data_dir / "no-seed.npz"}),
+            gallery=GallerySettings(data_dir=data_dir, self_check_poses=1),
+            auth=AuthSettings(keys={ADMIN_KEY: "admin", READ_KEY: "read"}),
+        )
+    )
     yield server
     server.stop()

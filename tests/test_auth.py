@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import logging
 
 import numpy as np
@@ -72,7 +73,21 @@ def call(client, operation: str, headers: dict, case: str):
         return client.post("/references", json=body, headers=headers)
     if operation == "delete":
         return client.delete(f"/references/{name}-d", headers=headers)
+    if operation == "read a file":
+        return client.post("/points", files={"file": ("a.npy", npy(cloud(4)))}, headers=headers)
+    if operation == "reference points":
+        return client.get("/references/seed/points", headers=headers)
+    if operation == "self-check":
+        return client.get("/references/seed/self_check?poses=1", headers=headers)
+    if operation == "recent alignments":
+        return client.get("/alignments", headers=headers)
     raise AssertionError(operation)
+
+
+def npy(points: list[list[float]]) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, np.asarray(points, dtype=np.float32))
+    return buffer.getvalue()
 
 
 EXPECTED = {  # operation -> caller -> status
@@ -81,6 +96,10 @@ EXPECTED = {  # operation -> caller -> status
     "align": [401, 401, 200, 200, 200, 200],
     "register": [401, 401, 403, 403, 201, 201],
     "delete": [401, 401, 403, 403, 204, 204],
+    "read a file": [401, 401, 200, 200, 200, 200],
+    "reference points": [401, 401, 200, 200, 200, 200],
+    "self-check": [401, 401, 200, 200, 200, 200],
+    "recent alignments": [401, 401, 200, 200, 200, 200],
 }
 
 

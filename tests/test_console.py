@@ -25,9 +25,8 @@ from service.api.app import create_app
 from service.api.recent import RecentAlignments
 from service.api.schemas import AlignResponse
 from service.engine.sampling import sample_surface
-from service.settings import AuthSettings, ConsoleSettings, GallerySettings, Settings
-from tests.conftest import pybullet_mesh
-from tests.servers import MODEL, ThreadServer
+from service.settings import AuthSettings, ConsoleSettings, Settings
+from tests.conftest import ADMIN_KEY, pybullet_mesh
 
 CHROMIUM = Path("/usr/bin/chromium")  # Debian's package; .ci/run installs it
 CHROMIUM_ARGS = [
@@ -40,31 +39,13 @@ CHROMIUM_ARGS = [
     "--no-first-run",
     "--disable-quic",
 ]
-ADMIN = "console-admin-key-0123"
-
-
-@pytest.fixture(scope="module")
-def keyed(tmp_path_factory):
-    """A service with an API key and an empty gallery (so it starts at once)."""
-    if not MODEL.path.exists():
-        pytest.skip(f"no ONNX model at {MODEL.path}")
-    data_dir = tmp_path_factory.mktemp("keyed")
-    server = ThreadServer(
-        Settings(
-            model=MODEL.model_copy(update={"gallery": data_dir / "no-seed.npz"}),
-            gallery=GallerySettings(data_dir=data_dir, self_check_poses=1),
-            auth=AuthSettings(keys={ADMIN: "admin"}),
-        )
-    )
-    yield server
-    server.stop()
 
 
 def test_recent_alignments_are_on_while_open_and_off_with_keys():
     assert Settings().recent_alignments == 20
-    assert Settings(auth=AuthSettings(keys={ADMIN: "admin"})).recent_alignments == 0
+    assert Settings(auth=AuthSettings(keys={ADMIN_KEY: "admin"})).recent_alignments == 0
     chosen = Settings(
-        auth=AuthSettings(keys={ADMIN: "admin"}), console=ConsoleSettings(recent_alignments=5)
+        auth=AuthSettings(keys={ADMIN_KEY: "admin"}), console=ConsoleSettings(recent_alignments=5)
     )
     assert chosen.recent_alignments == 5
 
@@ -112,21 +93,21 @@ def test_recent_alignments_replay_what_was_sent(service):
     assert service.client.get("/alignments/999999").status_code == 404
 
 
-def test_with_keys_nothing_is_kept_and_the_console_is_still_served(keyed):
-    headers = {"Authorization": f"Bearer {ADMIN}"}
-    assert keyed.client.get("/alignments").status_code == 401
-    assert keyed.client.get("/alignments", headers=headers).json() == {
+def test_with_keys_nothing_is_kept_and_the_console_is_still_served(keyed_service):
+    headers = {"Authorization": f"Bearer {ADMIN_KEY}"}
+    assert keyed_service.client.get("/alignments").status_code == 401
+    assert keyed_service.client.get("/alignments", headers=headers).json() == {
         "capacity": 0,
         "alignments": [],
     }
-    missing = keyed.client.get("/alignments/1", headers=headers)
+    missing = keyed_service.client.get("/alignments/1", headers=headers)
     assert (
         missing.status_code == 404 and "DPC_CONSOLE__RECENT_ALIGNMENTS" in missing.json()["detail"]
     )
-    page = keyed.client.get("/ui/")  # static: no key needed, the page asks for one
+    page = keyed_service.client.get("/ui/")  # static: no key needed, the page asks for one
     assert page.status_code == 200 and "importmap" in page.text
-    assert keyed.client.get("/", follow_redirects=False).headers["location"] == "/ui/"
-    assert keyed.client.get("/ui/vendor/three/LICENSE").text.startswith("The MIT License")
+    assert keyed_service.client.get("/", follow_redirects=False).headers["location"] == "/ui/"
+    assert keyed_service.client.get("/ui/vendor/three/LICENSE").text.startswith("The MIT License")
 
 
 def test_the_console_can_be_turned_off():
@@ -236,16 +217,19 @@ def test_register_and_align_by_dropping_files(service, browser, tmp_path):
     assert tab.errors == []
 
 
-def test_the_console_sends_the_api_key(keyed, browser):
-    tab = Page(browser, keyed.url)
+def test_the_console_sends_the_api_key(keyed_service, browser):
+    tab = Page(browser, keyed_service.url)
     page = tab.page
     page.wait_for_selector("#message.error")
     assert "API key" in tab.text("#message")  # nothing was requested without a key
-    page.fill("#api-key", ADMIN)
+    page.fill("#api-key", ADMIN_KEY)
     page.click("#key-form button")
     page.wait_for_selector("#gallery-count:text('(0)')")
     block = trimesh.creation.box(extents=(0.05, 0.08, 0.12)).export(file_type="stl")
     tab.drop("register-drop", "block.stl", block)
     page.wait_for_selector("body[data-registered=block]", timeout=60_000)
-    assert keyed.client.get("/references/block", headers={"X-API-Key": ADMIN}).status_code == 200
+    assert (
+        keyed_service.client.get("/references/block", headers={"X-API-Key": ADMIN_KEY}).status_code
+        == 200
+    )
     assert tab.errors == []

@@ -73,6 +73,15 @@ def test_the_store_does_not_import_the_api():
         assert not any(wing_of(name) == "service/api" for name in imports(file)), file
 
 
+def test_the_client_needs_only_numpy_and_httpx():
+    """``service.client`` runs on a cell controller: none of the service's own wings, no server."""
+    for file in sources("service/client"):
+        for name in imports(file):
+            assert wing_of(name) in (None, "service/client"), (file, name)
+            top = name.split(".")[0]
+            assert top not in ("fastapi", "starlette", "uvicorn", "onnxruntime", "torch"), name
+
+
 def test_the_service_never_imports_torch():
     for file in (REPO / "service").rglob("*.py"):
         assert not any(name.split(".")[0] == "torch" for name in imports(file)), file

@@ -1,0 +1,125 @@
+"""The service's answers as Python values: numpy for matrices, dataclasses for the rest.
+
+Each keeps the answer as the service sent it (``raw``), so fields added by a newer service
+are never lost; ``from_answer`` reads only the contract's names (shared/API.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Candidate:
+    label: str
+    score: float
+    alignment_error: float
+    alignment_error_normalized: float | None = None
+    hypothesis: str | None = None
+
+
+@dataclass(frozen=True)
+class Alternative:
+    """A pose that fits the observation as well, not related to the answer by a symmetry."""
+
+    rotation: np.ndarray  # (3, 3)
+    translation: np.ndarray  # (3,)
+    confidence: float | None
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Which part the service recognised and where it is: ``scene = rotation @ model + t``.
+
+    Only ``verdict == "match"`` is safe to act on; otherwise ``reasons`` says why.
+    """
+
+    label: str
+    score: float
+    rotation: np.ndarray  # (3, 3) float64
+    translation: np.ndarray  # (3,) float64
+    transform: np.ndarray  # (4, 4): [[R, t], [0, 0, 0, 1]]
+    alignment_error: float  # mean observed-to-reference distance, scene units
+    alignment_error_normalized: float  # divided by the reference's scale
+    verdict: str  # "match" | "uncertain" | "no_match"
+    confidence: float | None
+    reasons: list[str]
+    ambiguous: bool
+    alternatives: list[Alternative]
+    points_set_aside: int
+    hypothesis: str | None
+    candidates: list[Candidate]
+    timings_ms: dict[str, float]
+    raw: dict[str, Any] = field(repr=False)
+
+    @property
+    def is_match(self) -> bool:
+        return self.verdict == "match"
+
+    def apply(self, model_points: np.ndarray) -> np.ndarray:
+        """Model-frame points (N, 3) placed in the scene at this pose."""
+        return np.asarray(model_points, dtype=np.float64) @ self.rotation.T + self.translation
+
+    @classmethod
+    def from_answer(cls, answer: dict[str, Any]) -> Pose:
+        return cls(
+            label=answer["label"],
+            score=answer["score"],
+            rotation=np.array(answer["rotation"], dtype=np.float64),
+            translation=np.array(answer["translation"], dtype=np.float64),
+            transform=np.array(answer["transform"], dtype=np.float64),
+            alignment_error=answer["alignment_error"],
+            alignment_error_normalized=answer["alignment_error_normalized"],
+            verdict=answer.get("verdict", "match"),
+            confidence=answer.get("confidence"),
+            reasons=list(answer.get("reasons", [])),
+            ambiguous=bool(answer.get("ambiguous", False)),
+            alternatives=[
+                Alternative(
+                    np.array(a["rotation"], dtype=np.float64),
+                    np.array(a["translation"], dtype=np.float64),
+                    a.get("confidence"),
+                )
+                for a in answer.get("alternatives", [])
+            ],
+            points_set_aside=answer.get("points_set_aside", 0),
+            hypothesis=answer.get("hypothesis"),
+            candidates=[
+                Candidate(
+                    c["label"],
+                    c["score"],
+                    c["alignment_error"],
+                    c.get("alignment_error_normalized"),
+                    c.get("hypothesis"),
+                )
+                for c in answer.get("candidates", [])
+            ],
+            timings_ms=dict(answer.get("timings_ms", {})),
+            raw=answer,
+        )
+
+
+@dataclass(frozen=True)
+class Reference:
+    """A registered part: its name, size (``scale``, the radius) and points' checksum."""
+
+    name: str
+    num_points: int
+    scale: float
+    points_sha256: str | None
+    self_check: list[dict[str, Any]] | None  # registration only: the part aligned to itself
+    raw: dict[str, Any] = field(repr=False)
+
+    @classmethod
+    def from_answer(cls, answer: dict[str, Any]) -> Reference:
+        return cls(
+            name=answer["name"],
+            num_points=answer["num_points"],
+            scale=answer["scale"],
+            points_sha256=answer.get("points_sha256"),
+            self_check=answer.get("self_check"),
+            raw=answer,
+        )

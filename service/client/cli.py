@@ -1,0 +1,249 @@
+"""``dpc-mn``: the service from a shell, through ``service.client.Client``.
+
+    dpc-mn register bracket.stl --name bracket-a
+    dpc-mn align scan.pcd --candidates bracket-a
+    dpc-mn align depth.png --fx 300 --fy 300 --cx 160 --cy 120 --mask part.png --json
+    dpc-mn references
+    dpc-mn serve --port 9000
+
+Every command takes ``--url`` (``DPCMN_URL``), ``--api-key`` (``DPCMN_API_KEY``) and ``--json``
+(the service's answer as JSON on stdout, for scripts; errors too). Exit status: see ``EPILOG``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from service.client.answers import Pose, Reference
+from service.client.client import DEFAULT_URL, Client, DepthCamera
+from service.client.errors import ServiceError, Unreachable
+
+OK, FAILED, USAGE, NOT_A_MATCH, UNREACHABLE = 0, 1, 2, 3, 4
+EPILOG = """exit status:
+  0  done (align: the verdict is "match", safe to act on)
+  1  the service refused or failed the request (the reason is printed)
+  2  a bad command line
+  3  align answered, but the verdict is "uncertain" or "no_match"
+  4  the service could not be reached"""
+URL_ENV, KEY_ENV = "DPCMN_URL", "DPCMN_API_KEY"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    arguments = parser().parse_args(argv)
+    if arguments.command == "serve":
+        serve(arguments)  # does not return
+    try:
+        with Client(arguments.url, arguments.api_key, arguments.timeout) as client:
+            return arguments.run(client, arguments)
+    except ServiceError as error:
+        return report_error(error, arguments.json)
+    except OSError as error:  # a file that cannot be read
+        return report_error(ServiceError(f"{error.strerror}: {error.filename}"), arguments.json)
+
+
+def parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--url",
+        default=os.environ.get(URL_ENV, DEFAULT_URL),
+        help=f"the service (${URL_ENV}; default {DEFAULT_URL})",
+    )
+    common.add_argument(
+        "--api-key",
+        default=os.environ.get(KEY_ENV),
+        help=f"an API key, sent as 'Authorization: Bearer' (${KEY_ENV})",
+    )
+    common.add_argument("--timeout", type=float, default=60.0, help="seconds (default 60)")
+    common.add_argument("--json", action="store_true", help="print the answer as JSON")
+    formatter = argparse.RawDescriptionHelpFormatter
+    top = argparse.ArgumentParser(
+        prog="dpc-mn",
+        description="Register parts with the DPC-MN pose service, align clouds and depth "
+        "images against them, and start the service.",
+        epilog=EPILOG,
+        formatter_class=formatter,
+    )
+    commands = top.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def command(name: str, run: Callable[..., int] | None, summary: str) -> argparse.ArgumentParser:
+        sub = commands.add_parser(
+            name,
+            parents=[] if run is None else [common],
+            help=summary,
+            description=summary,
+            epilog=EPILOG,
+            formatter_class=formatter,
+        )
+        sub.set_defaults(run=run)
+        return sub
+
+    align = command("align", run_align, "Recognise the part in a cloud file and estimate its pose")
+    align.add_argument(
+        "file", help="a cloud (.ply, .pcd, .npy) or a depth image (.png, .tif, .npy) with --fx..."
+    )
+    align.add_argument("--candidates", type=names, help="reference names, comma-separated")
+    align.add_argument(
+        "--viewpoint", type=vector, help="where the sensor was: x,y,z (--viewpoint=-1,0,0)"
+    )
+    align.add_argument("--min-confidence", type=float, help="below it, never 'match' (0 to 1)")
+    align.add_argument("--top-k", type=int, help="candidates to verify geometrically")
+    align.add_argument(
+        "--no-refine", dest="refine", action="store_false", default=None, help="skip ICP"
+    )
+    for name in ("fx", "fy", "cx", "cy"):
+        align.add_argument(f"--{name}", type=float, help="depth image: camera intrinsic, pixels")
+    align.add_argument("--depth-scale", type=float, help="depth image: scene units per value")
+    align.add_argument("--mask", help="depth image: an image of the same size; 0 leaves out")
+
+    register = command("register", run_register, "Register a part from a mesh or cloud file")
+    register.add_argument("file", help="a mesh (.stl, .obj, .ply) or a cloud (.ply, .pcd, .npy)")
+    register.add_argument("--name", required=True, help="1-64 characters of A-Z a-z 0-9 . _ -")
+    register.add_argument("--replace", action="store_true", help="replace a part of that name")
+    register.add_argument(
+        "--no-self-check", dest="self_check", action="store_false", help="skip the self-check"
+    )
+
+    command("references", run_references, "List the registered parts")
+    delete = command("delete", run_delete, "Remove a registered part")
+    delete.add_argument("name")
+    command("health", run_health, "The service's status, model and number of references")
+
+    serve_command = command("serve", None, "Start the service (as python -m service)")
+    serve_command.add_argument("--host", help="address to listen on (DPC_SERVER__HOST)")
+    serve_command.add_argument("--port", type=int, help="port to listen on (DPC_SERVER__PORT)")
+    return top
+
+
+def run_align(client: Client, arguments: argparse.Namespace) -> int:
+    intrinsics = [arguments.fx, arguments.fy, arguments.cx, arguments.cy]
+    camera = None
+    if any(value is not None for value in intrinsics) or arguments.depth_scale is not None:
+        camera = DepthCamera(*intrinsics, depth_scale=arguments.depth_scale)  # type: ignore[arg-type]
+    pose = client.align_file(
+        arguments.file,
+        arguments.viewpoint,
+        arguments.candidates,
+        camera=camera,
+        mask=arguments.mask,
+        top_k=arguments.top_k,
+        refine=arguments.refine,
+        min_confidence=arguments.min_confidence,
+    )
+    print(json.dumps(pose.raw) if arguments.json else describe_pose(pose))
+    return OK if pose.is_match else NOT_A_MATCH
+
+
+def run_register(client: Client, arguments: argparse.Namespace) -> int:
+    reference = client.register(
+        arguments.name, arguments.file, replace=arguments.replace, self_check=arguments.self_check
+    )
+    print(json.dumps(reference.raw) if arguments.json else describe_reference(reference))
+    return OK
+
+
+def run_references(client: Client, arguments: argparse.Namespace) -> int:
+    references = client.references()
+    if arguments.json:
+        print(json.dumps({"references": [r.raw for r in references]}))
+    else:
+        print(f"{len(references)} references")
+        for r in references:
+            print(f"  {r.name:<32} {r.num_points:>7} points  scale {r.scale:.4g}")
+    return OK
+
+
+def run_delete(client: Client, arguments: argparse.Namespace) -> int:
+    client.delete(arguments.name)
+    print(
+        json.dumps({"deleted": arguments.name}) if arguments.json else f"deleted {arguments.name}"
+    )
+    return OK
+
+
+def run_health(client: Client, arguments: argparse.Namespace) -> int:
+    health = client.health()
+    if arguments.json:
+        print(json.dumps(health))
+    else:
+        print(
+            f"{health['status']}: {health['references']} references, auth {health['auth']}, "
+            f"providers {', '.join(health['providers'])}"
+        )
+    return OK if health["status"] == "ok" else FAILED
+
+
+def serve(arguments: argparse.Namespace) -> None:
+    """Become ``python -m service`` with the same flags (its signals, its exit status)."""
+    flags = [
+        f"--{name}={value}" for name in ("host", "port") if (value := getattr(arguments, name))
+    ]
+    os.execv(sys.executable, [sys.executable, "-m", "service", *flags])
+
+
+def describe_pose(pose: Pose) -> str:
+    confidence = "unknown" if pose.confidence is None else f"{pose.confidence:.2f}"
+    lines = [
+        f"{pose.verdict}: {pose.label} (confidence {confidence}, score {pose.score:.3f})",
+        f"  alignment error {pose.alignment_error:.4g} "
+        f"({pose.alignment_error_normalized:.3f} of the scale), hypothesis {pose.hypothesis}",
+        f"  rotation    {_rows(pose.rotation)}",
+        f"  translation {_row(pose.translation)}",
+    ]
+    lines += [f"  reason: {reason}" for reason in pose.reasons]
+    if pose.ambiguous:
+        lines.append(f"  ambiguous: {len(pose.alternatives)} other pose(s) fit alike")
+    if pose.points_set_aside:
+        lines.append(f"  {pose.points_set_aside} points set aside (support plane, strays)")
+    timings = ", ".join(f"{k} {v:.1f}" for k, v in pose.timings_ms.items())
+    lines.append(f"  timings (ms): {timings}")
+    return "\n".join(lines)
+
+
+def describe_reference(reference: Reference) -> str:
+    text = (
+        f"registered {reference.name}: {reference.num_points} points, scale {reference.scale:.4g}"
+    )
+    checks = reference.self_check or []
+    if checks:
+        right = sum(bool(check.get("label_ok")) for check in checks)
+        worst = max(float(check.get("rotation_error_deg", 0.0)) for check in checks)
+        text += f"\n  self-check: {right}/{len(checks)} recognised, worst rotation {worst:.1f} deg"
+    return text
+
+
+def report_error(error: ServiceError, as_json: bool) -> int:
+    if as_json:
+        print(json.dumps({"error": {"status": error.status, "detail": error.detail}}))
+    print(f"dpc-mn: {error}", file=sys.stderr)
+    return UNREACHABLE if isinstance(error, Unreachable) else FAILED
+
+
+def names(text: str) -> list[str]:
+    return [name.strip() for name in text.split(",") if name.strip()]
+
+
+def vector(text: str) -> list[float]:
+    try:
+        values = [float(part) for part in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"'{text}' is not three numbers x,y,z")
+    return values
+
+
+def _row(values: Any) -> str:
+    return "[" + ", ".join(f"{v: .6f}" for v in values) + "]"
+
+
+def _rows(matrix: Any) -> str:
+    return "[" + ", ".join(_row(row) for row in matrix) + "]"
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,240 @@
+"""``Client``: the service's HTTP API from Python, over httpx.
+
+Points go as raw little-endian float32 (12 bytes a point), so the service aligns exactly the
+float32 values of the array given; a file goes as the multipart ``file`` field and is read by
+the service (PLY, PCD, NPY, STL, OBJ, and depth images with their camera). Every error answer
+raises the ``service.client.errors`` type of its status, carrying the service's ``detail``.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from service.client.answers import Pose, Reference
+from service.client.errors import ServiceError, Unreachable, error_for
+
+RAW = "application/octet-stream"
+DEFAULT_URL = "http://127.0.0.1:8000"
+PointsOrPath = np.ndarray | Sequence[Sequence[float]] | str | Path
+
+
+@dataclass(frozen=True)
+class DepthCamera:
+    """A depth image's camera: pinhole intrinsics in pixels; ``depth_scale`` is scene units per
+    depth value (default: 0.001 for a 16-bit image in millimetres, 1 for a float one)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    depth_scale: float | None = None
+
+
+class Client:
+    """One service: ``Client(url, api_key=...)``; use it in a ``with`` block, or ``close()``."""
+
+    def __init__(
+        self,
+        url: str = DEFAULT_URL,
+        api_key: str | None = None,
+        timeout: float = 60.0,
+        transport: httpx.BaseTransport | None = None,
+    ):
+        headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
+        self.url = url.rstrip("/")
+        self._http = httpx.Client(
+            base_url=self.url, headers=headers, timeout=timeout, transport=transport
+        )
+
+    def align(
+        self,
+        points: np.ndarray | Sequence[Sequence[float]],
+        viewpoint: Sequence[float] | None = None,
+        candidates: Iterable[str] | None = None,
+        *,
+        top_k: int | None = None,
+        refine: bool | None = None,
+        min_confidence: float | None = None,
+    ) -> Pose:
+        """Recognise the part in ``points`` (N, 3) and estimate its pose."""
+        options = _options(viewpoint, candidates, top_k, refine, min_confidence)
+        answer = self._request(
+            "POST",
+            "/align",
+            content=float32_bytes(points),
+            params=options,
+            headers={"Content-Type": RAW},
+        )
+        return Pose.from_answer(answer.json())
+
+    def align_file(
+        self,
+        path: str | Path,
+        viewpoint: Sequence[float] | None = None,
+        candidates: Iterable[str] | None = None,
+        *,
+        camera: DepthCamera | None = None,
+        mask: str | Path | None = None,
+        top_k: int | None = None,
+        refine: bool | None = None,
+        min_confidence: float | None = None,
+    ) -> Pose:
+        """Align a file as a camera tool saved it: a cloud (PLY, PCD, NPY) or a depth image
+        (PNG, TIFF, NPY) with its ``camera`` (its viewpoint is then the camera, the origin)."""
+        options = _options(viewpoint, candidates, top_k, refine, min_confidence)
+        answer = self._upload("/align", path, camera, mask, options)
+        return Pose.from_answer(answer.json())
+
+    def read_points(
+        self, path: str | Path, camera: DepthCamera | None = None, mask: str | Path | None = None
+    ) -> tuple[np.ndarray, list[float] | None]:
+        """The points the service reads from a file (as ``align_file`` would align them), and
+        the viewpoint the file implies (a depth image: ``[0, 0, 0]``; else None)."""
+        answer = self._upload("/points", path, camera, mask, {})
+        implied = answer.headers.get("X-Viewpoint")
+        viewpoint = None if implied is None else [float(v) for v in implied.split(",")]
+        return points_from_bytes(answer.content), viewpoint
+
+    def register(
+        self,
+        name: str,
+        path_or_points: PointsOrPath,
+        *,
+        replace: bool = False,
+        self_check: bool = True,
+    ) -> Reference:
+        """Register a part from a mesh or cloud file, or from points (sent as float32 NPY)."""
+        if isinstance(path_or_points, str | Path):
+            path = Path(path_or_points)
+            file = (path.name, path.read_bytes())
+        else:
+            file = ("points.npy", npy_bytes(path_or_points))
+        answer = self._request(
+            "POST",
+            "/references",
+            data={"name": name},
+            files={"file": file},
+            params={"replace": _flag(replace), "self_check": _flag(self_check)},
+        )
+        return Reference.from_answer(answer.json())
+
+    def references(self) -> list[Reference]:
+        answer = self._request("GET", "/references").json()
+        return [Reference.from_answer(item) for item in answer["references"]]
+
+    def reference(self, name: str) -> Reference:
+        return Reference.from_answer(self._request("GET", f"/references/{name}").json())
+
+    def reference_points(self, name: str) -> np.ndarray:
+        """The points a reference was registered with (float32, model frame)."""
+        return points_from_bytes(self._request("GET", f"/references/{name}/points").content)
+
+    def delete(self, name: str) -> None:
+        self._request("DELETE", f"/references/{name}")
+
+    def health(self) -> dict[str, Any]:
+        """``/health``: status, model, execution providers, references (a 503 while loading
+        is answered, not raised)."""
+        answer = self._send("GET", "/health")
+        if answer.status_code not in (200, 503):
+            raise _error(answer)
+        return answer.json()
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _upload(
+        self,
+        route: str,
+        path: str | Path,
+        camera: DepthCamera | None,
+        mask: str | Path | None,
+        options: dict[str, Any],
+    ) -> httpx.Response:
+        path = Path(path)
+        files = {"file": (path.name, path.read_bytes())}
+        if mask is not None:
+            files["mask"] = (Path(mask).name, Path(mask).read_bytes())
+        fields = {k: v for k, v in asdict(camera).items() if v is not None} if camera else {}
+        return self._request("POST", route, data=fields | options, files=files)
+
+    def _request(self, method: str, route: str, **kwargs: Any) -> httpx.Response:
+        answer = self._send(method, route, **kwargs)
+        if answer.is_error:
+            raise _error(answer)
+        return answer
+
+    def _send(self, method: str, route: str, **kwargs: Any) -> httpx.Response:
+        try:
+            return self._http.request(method, route, **kwargs)
+        except httpx.TransportError as error:
+            raise Unreachable(f"cannot reach the service at {self.url}: {error}") from error
+
+
+def float32_bytes(points: np.ndarray | Sequence[Sequence[float]]) -> bytes:
+    """(N, 3) points as little-endian float32 ``x y z`` triples, the raw body of ``/align``."""
+    array = np.asarray(points)
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), not {array.shape}")
+    return np.ascontiguousarray(array, dtype="<f4").tobytes()
+
+
+def points_from_bytes(data: bytes) -> np.ndarray:
+    """Raw little-endian float32 ``x y z`` triples as an (N, 3) float32 array."""
+    return np.frombuffer(data, dtype="<f4").reshape(-1, 3)
+
+
+def npy_bytes(points: np.ndarray | Sequence[Sequence[float]]) -> bytes:
+    """(N, 3) points as an NPY file of little-endian float32: what ``register`` uploads."""
+    buffer = io.BytesIO()
+    np.save(buffer, np.frombuffer(float32_bytes(points), dtype="<f4").reshape(-1, 3))
+    return buffer.getvalue()
+
+
+def _options(
+    viewpoint: Sequence[float] | None,
+    candidates: Iterable[str] | None,
+    top_k: int | None,
+    refine: bool | None,
+    min_confidence: float | None,
+) -> dict[str, Any]:
+    """``/align``'s options as query parameters or form fields; floats written exactly."""
+    options: dict[str, Any] = {
+        "viewpoint": None if viewpoint is None else ",".join(repr(float(v)) for v in viewpoint),
+        "candidates": None if candidates is None else list(candidates),
+        "top_k": top_k,
+        "refine": None if refine is None else _flag(refine),
+        "min_confidence": None if min_confidence is None else repr(float(min_confidence)),
+    }
+    return {key: value for key, value in options.items() if value is not None}
+
+
+def _flag(value: bool) -> str:
+    return "true" if value else "false"
+
+
+def _error(answer: httpx.Response) -> ServiceError:
+    try:
+        detail = str(answer.json()["detail"])
+    except (ValueError, KeyError, TypeError):
+        detail = answer.text[:200] or answer.reason_phrase
+    retry = answer.headers.get("Retry-After")
+    return error_for(answer.status_code)(
+        detail,
+        status=answer.status_code,
+        request_id=answer.headers.get("X-Request-ID"),
+        retry_after=float(retry) if retry and retry.isdigit() else None,
+    )
