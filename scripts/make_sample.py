@@ -24,6 +24,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from pypcd4 import Encoding, PointCloud
 from scipy.spatial.transform import Rotation
 
 REPO = Path(__file__).resolve().parent.parent
@@ -102,9 +103,12 @@ def main(argv: list[str] | None = None) -> None:
     args.out_dir.mkdir(parents=True, exist_ok=True)
     cloud_path = args.out_dir / "sample_cloud.json"
     pose_path = args.out_dir / "sample_cloud_pose.json"
+    pcd_path = args.out_dir / "sample_cloud.pcd"
     cloud_path.write_text(json.dumps(body, separators=(",", ":")) + "\n")
     pose_path.write_text(json.dumps(pose, indent=2) + "\n")
-    print(f"wrote {cloud_path} ({len(body['points'])} points of {name!r}) and {pose_path}")
+    points = np.asarray(body["points"], dtype=np.float32)
+    PointCloud.from_xyz_points(points).save(pcd_path, Encoding.BINARY)
+    print(f"wrote {cloud_path}, {pcd_path} ({len(points)} points of {name!r}) and {pose_path}")
     print("align it with the service running on port 8000:")
     print(f"  {CURL}")
 

@@ -8,10 +8,12 @@ errors, a drop registers, a drop aligns and draws, and the README's screenshot.
 from __future__ import annotations
 
 import base64
+import fnmatch
 import hashlib
 import io
 import os
 import shutil
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +28,7 @@ from service.api.recent import RecentAlignments
 from service.api.schemas import AlignResponse
 from service.engine.sampling import sample_surface
 from service.settings import AuthSettings, ConsoleSettings, Settings
-from tests.conftest import ADMIN_KEY, pybullet_mesh
+from tests.conftest import ADMIN_KEY, REPO, pybullet_mesh
 
 CHROMIUM = Path("/usr/bin/chromium")  # Debian's package; .ci/run installs it
 CHROMIUM_ARGS = [
@@ -113,6 +115,17 @@ def test_with_keys_nothing_is_kept_and_the_console_is_still_served(keyed_service
 def test_the_console_can_be_turned_off():
     app = create_app(Settings(console=ConsoleSettings(enabled=False)))
     assert not any(getattr(route, "path", "") in ("/ui", "/") for route in app.routes)
+
+
+def test_every_console_file_ships_in_the_package():
+    """The wheel (and so the Docker image) carries what pyproject's package-data names."""
+    setuptools = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    shipped = setuptools["package-data"]["service"]
+    service = REPO / "service"
+    for path in (service / "console").rglob("*"):
+        if path.is_file():
+            name = path.relative_to(service).as_posix()
+            assert any(fnmatch.fnmatch(name, pattern) for pattern in shipped), name
 
 
 def sample_points(mesh: str, seed: int = 5) -> np.ndarray:
@@ -228,6 +241,8 @@ def test_the_console_sends_the_api_key(keyed_service, browser):
     block = trimesh.creation.box(extents=(0.05, 0.08, 0.12)).export(file_type="stl")
     tab.drop("register-drop", "block.stl", block)
     page.wait_for_selector("body[data-registered=block]", timeout=60_000)
+    page.click("#try-pose")  # its own points in a random pose, aligned with the key
+    page.wait_for_selector("#view[data-drawn=alignment][data-label=block]", timeout=60_000)
     assert (
         keyed_service.client.get("/references/block", headers={"X-API-Key": ADMIN_KEY}).status_code
         == 200

@@ -12,11 +12,13 @@ import json
 import numpy as np
 import pytest
 
+from service.api.parsers import read_points
 from service.settings import MODELS_DIR, Settings
 from tests.backends import Location
 from tests.test_api import Server
 
 SAMPLE = MODELS_DIR / "sample_cloud.json"
+SAMPLE_PCD = MODELS_DIR / "sample_cloud.pcd"  # the same points, for the console and dpc-mn
 POSE = MODELS_DIR / "sample_cloud_pose.json"
 MODEL = Settings().model.path
 
@@ -44,6 +46,12 @@ def test_the_sample_file_is_a_valid_align_body():
     rotation = np.asarray(pose["rotation"])
     np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-9)
     assert np.linalg.det(rotation) == pytest.approx(1.0)
+
+
+def test_the_sample_pcd_holds_the_same_points():
+    points = read_points(SAMPLE_PCD.read_bytes(), SAMPLE_PCD.name, 2048, 10_000)
+    expected = np.asarray(json.loads(SAMPLE.read_text())["points"], dtype=np.float32)
+    np.testing.assert_array_equal(points, expected)
 
 
 @needs_model

@@ -72,6 +72,15 @@ STATUS = {  # the one status code of each error the engine, store and routes rai
 ERROR_REF = "#/components/schemas/Error"
 
 
+DESCRIPTION = (
+    "Recognise a registered object in a point cloud and estimate its 6-DoF pose "
+    "(scene = R @ model + t). Points go as JSON, raw little-endian float32, or a camera's file "
+    "(PLY, PCD, NPY, or a depth image with its intrinsics) as a multipart upload. The web "
+    "console is at [/ui/](/ui/); the package ships a Python client (`service.client.Client`) "
+    "and the `dpc-mn` command."
+)
+
+
 class BodyTooLarge(Exception):
     """A request body over ``limits.max_body_bytes`` (413)."""
 
@@ -84,7 +93,7 @@ def create_app(
     app = FastAPIOffline(  # /docs and /redoc load Swagger UI and ReDoc from this service
         title="DPC-MN pose service",
         version=VERSION,
-        description="Recognise a registered object in a point cloud and estimate its 6-DoF pose.",
+        description=DESCRIPTION,
         lifespan=lifespan,
     )
     app.state.settings = settings

@@ -145,6 +145,11 @@ async function selectReference(reference, selfCheck = null) {
   view.element.dataset.drawn = "reference";
   const checks = el("div", {});
   const run = el("button", { onclick: () => runSelfCheck(reference.name, checks) }, "run the self-check");
+  const tryIt = el(
+    "button",
+    { onclick: () => alignRandomPose(reference.name).catch(fail), id: "try-pose" },
+    "align it in a random pose",
+  );
   $("result").replaceChildren(
     el("div", { class: "big" }, reference.name),
     table([
@@ -152,6 +157,8 @@ async function selectReference(reference, selfCheck = null) {
       ["scale (radius)", number(reference.scale)],
       ["points sha256", (reference.points_sha256 || "").slice(0, 16) + "…"],
     ]),
+    el("h3", {}, "Try it: half of its own points, moved to a random pose, aligned"),
+    tryIt,
     el("h3", {}, "Self-check: the part aligned against random poses of itself"),
     run,
     checks,
@@ -324,6 +331,40 @@ function showResult(answer, count, source, again) {
     ),
     again ? el("button", { onclick: again }, "align these points again") : null,
   ]));
+}
+
+// Every other point of a cloud, turned by a rotation uniform over SO(3) (Shoemake's random unit
+// quaternion) about its centroid and shifted by up to a radius.
+function randomPose(points) {
+  const [a, b, c] = [Math.random(), Math.random(), Math.random()];
+  const [x, y, z, w] = [
+    Math.sqrt(1 - a) * Math.sin(2 * Math.PI * b),
+    Math.sqrt(1 - a) * Math.cos(2 * Math.PI * b),
+    Math.sqrt(a) * Math.sin(2 * Math.PI * c),
+    Math.sqrt(a) * Math.cos(2 * Math.PI * c),
+  ];
+  const r = [
+    [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+    [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+    [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+  ];
+  const count = points.length / 3;
+  const centre = [0, 1, 2].map((k) => points.filter((_, i) => i % 3 === k).reduce((s, v) => s + v, 0) / count);
+  let radius = 0;
+  for (let i = 0; i < points.length; i += 3) {
+    radius = Math.max(radius, Math.hypot(points[i] - centre[0], points[i + 1] - centre[1], points[i + 2] - centre[2]));
+  }
+  const shift = [0, 1, 2].map(() => (2 * Math.random() - 1) * radius);
+  const moved = new Float32Array(3 * Math.ceil(count / 2));
+  for (let i = 0, j = 0; i < points.length; i += 6, j += 3) {
+    const p = [0, 1, 2].map((k) => points[i + k] - centre[k]);
+    for (let k = 0; k < 3; k++) moved[j + k] = centre[k] + shift[k] + r[k][0] * p[0] + r[k][1] * p[1] + r[k][2] * p[2];
+  }
+  return moved;
+}
+
+async function alignRandomPose(name) {
+  await alignPoints(randomPose(await pointsOf(name)), null, `${name} in a random pose`);
 }
 
 // Recent alignments (the service's ring buffer)

@@ -8,13 +8,12 @@ from __future__ import annotations
 
 from datetime import UTC, datetime
 
-import numpy as np
 from fastapi import APIRouter, Response
 
 from service.api.auth import ReadAccess
 from service.api.dependencies import RecentDep
 from service.api.recent import Recorded
-from service.api.routes.common import RAW, errors
+from service.api.routes.common import errors, points_answer, points_response
 from service.api.schemas import RecentAlignment, RecentAlignmentDetail, RecentAlignments
 
 router = APIRouter(prefix="/alignments", tags=["align"])
@@ -53,18 +52,12 @@ async def recorded(alignment_id: int, ring: RecentDep) -> RecentAlignmentDetail:
     "/{alignment_id}/points",
     response_class=Response,
     summary="One of the last alignments: the points as aligned, raw float32",
-    responses={
-        200: {
-            "content": {RAW: {"schema": {"type": "string", "format": "binary"}}},
-            "description": "little-endian float32 x y z triples",
-        }
-    }
-    | errors(401, 404),
+    responses=points_answer("triples") | errors(401, 404),
     dependencies=[ReadAccess],
 )
 async def recorded_points(alignment_id: int, ring: RecentDep) -> Response:
     entry = _kept(ring.get(alignment_id), alignment_id, ring.capacity)
-    return Response(np.asarray(entry.points, "<f4").tobytes(), media_type=RAW)
+    return points_response(entry.points)
 
 
 def summary(entry: Recorded) -> RecentAlignment:

@@ -7,8 +7,9 @@ import json
 from collections.abc import Iterable
 from typing import Any, TypeVar
 
+import numpy as np
 import orjson
-from fastapi import Request
+from fastapi import Request, Response
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 
@@ -87,6 +88,17 @@ def require(data: dict[str, Any], key: str) -> Any:
 def invalid(message: str, field: str = "body") -> RequestValidationError:
     """A 422 about one field (or the whole body), worded like FastAPI's own."""
     return RequestValidationError([{"loc": (field,), "msg": message, "type": "value_error"}])
+
+
+def points_answer(description: str) -> dict[int | str, dict[str, Any]]:
+    """The OpenAPI entry of a 200 that answers raw points."""
+    content = {RAW: {"schema": {"type": "string", "format": "binary"}}}
+    return {200: {"content": content, "description": f"little-endian float32 x y z {description}"}}
+
+
+def points_response(points: np.ndarray, headers: dict[str, str] | None = None) -> Response:
+    """(N, 3) points as little-endian float32 ``x y z`` triples, 12 bytes a point."""
+    return Response(np.asarray(points, "<f4").tobytes(), media_type=RAW, headers=headers)
 
 
 def errors(*codes: int) -> dict[int | str, dict[str, Any]]:

@@ -7,12 +7,17 @@ files (a depth image's intrinsics, a mask) before aligning them.
 
 from __future__ import annotations
 
-import numpy as np
 from fastapi import APIRouter, Request, Response
 
 from service.api.auth import ReadAccess
 from service.api.dependencies import LimiterDep, SettingsDep
-from service.api.routes.common import MULTIPART, RAW, body_kind, errors
+from service.api.routes.common import (
+    MULTIPART,
+    body_kind,
+    errors,
+    points_answer,
+    points_response,
+)
 from service.api.uploads import CAMERA_FIELDS, CLOUD_FILES, form_points, read_form
 
 router = APIRouter(tags=["align"])
@@ -29,13 +34,10 @@ BODY = {
     "/points",
     response_class=Response,
     summary="Read a cloud, mesh or depth-image file into the points /align would use",
-    responses={
-        200: {
-            "content": {RAW: {"schema": {"type": "string", "format": "binary"}}},
-            "description": "little-endian float32 x y z triples; `X-Points` is their count, "
-            "`X-Viewpoint` (x,y,z) the viewpoint the file implies (a depth image: 0,0,0)",
-        }
-    }
+    responses=points_answer(
+        "triples; `X-Points` is their count, `X-Viewpoint` (x,y,z) the viewpoint the file "
+        "implies (a depth image: 0,0,0)"
+    )
     | errors(401, 413, 415, 422, 503, 504),
     openapi_extra={"requestBody": BODY},
     dependencies=[ReadAccess],
@@ -47,4 +49,4 @@ async def points(request: Request, settings: SettingsDep, limiter: LimiterDep) -
     headers = {COUNT_HEADER: str(len(cloud))}
     if viewpoint is not None:
         headers[VIEWPOINT_HEADER] = ",".join(f"{v:g}" for v in viewpoint)
-    return Response(np.asarray(cloud, "<f4").tobytes(), media_type=RAW, headers=headers)
+    return points_response(cloud, headers)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from typing import Annotated
 
-import numpy as np
 from fastapi import APIRouter, Query, Request, Response, status
 
 from service.api.auth import AdminAccess, ReadAccess
@@ -14,12 +13,13 @@ from service.api.parsers import Upload, read_upload
 from service.api.routes.common import (
     JSON,
     MULTIPART,
-    RAW,
     body_kind,
     errors,
     json_object,
     known_fields,
     parse,
+    points_answer,
+    points_response,
     require,
 )
 from service.api.schemas import (
@@ -145,19 +145,12 @@ async def describe(name: str, engine: EngineDep) -> ReferenceInfo:
     "/{name}/points",
     response_class=Response,
     summary="The points a reference was registered with, as raw float32",
-    responses={
-        200: {
-            "content": {RAW: {"schema": {"type": "string", "format": "binary"}}},
-            "description": "little-endian float32 x y z triples in the model frame (their sha256 "
-            "is the reference's points_sha256)",
-        }
-    }
+    responses=points_answer("triples in the model frame (their sha256 is points_sha256)")
     | errors(401, 404, 503),
     dependencies=[ReadAccess],
 )
 async def reference_points(name: str, engine: EngineDep) -> Response:
-    reference = _known(engine, name)
-    return Response(np.asarray(reference.points, "<f4").tobytes(), media_type=RAW)
+    return points_response(_known(engine, name).points)
 
 
 @router.get(
