@@ -157,7 +157,7 @@ async function selectReference(reference, selfCheck = null) {
       ["scale (radius)", number(reference.scale)],
       ["points sha256", (reference.points_sha256 || "").slice(0, 16) + "…"],
     ]),
-    el("h3", {}, "Try it: half of its own points, moved to a random pose, aligned"),
+    el("h3", {}, "Try it: half of its own points, 1 % noise, a random pose"),
     tryIt,
     el("h3", {}, "Self-check: the part aligned against random poses of itself"),
     run,
@@ -275,8 +275,8 @@ async function showAlignment(points, viewpoint, answer, source, again = null) {
   const reference = await pointsOf(answer.label);
   view.show(
     [
-      { points, color: OBSERVED },
-      { points: reference, color: REFERENCE, transform: answer.transform },
+      { points: reference, color: REFERENCE, transform: answer.transform, size: 0.8 },
+      { points, color: OBSERVED }, // drawn last: the observation stays in front
     ],
     { viewpoint, axesAt: answer.transform },
   );
@@ -333,8 +333,8 @@ function showResult(answer, count, source, again) {
   ]));
 }
 
-// Every other point of a cloud, turned by a rotation uniform over SO(3) (Shoemake's random unit
-// quaternion) about its centroid and shifted by up to a radius.
+// Every other point of a cloud with noise of 1 % of its radius, turned by a rotation uniform
+// over SO(3) (Shoemake's random unit quaternion) about its centroid, shifted by up to a radius.
 function randomPose(points) {
   const [a, b, c] = [Math.random(), Math.random(), Math.random()];
   const [x, y, z, w] = [
@@ -357,10 +357,14 @@ function randomPose(points) {
   const shift = [0, 1, 2].map(() => (2 * Math.random() - 1) * radius);
   const moved = new Float32Array(3 * Math.ceil(count / 2));
   for (let i = 0, j = 0; i < points.length; i += 6, j += 3) {
-    const p = [0, 1, 2].map((k) => points[i + k] - centre[k]);
+    const p = [0, 1, 2].map((k) => points[i + k] - centre[k] + 0.01 * radius * gaussian());
     for (let k = 0; k < 3; k++) moved[j + k] = centre[k] + shift[k] + r[k][0] * p[0] + r[k][1] * p[1] + r[k][2] * p[2];
   }
   return moved;
+}
+
+function gaussian() {
+  return Math.sqrt(-2 * Math.log(1 - Math.random())) * Math.cos(2 * Math.PI * Math.random());
 }
 
 async function alignRandomPose(name) {

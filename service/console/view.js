@@ -1,16 +1,17 @@
 // The 3-D view (three.js): clouds as points, orbitable; and the gallery's thumbnails, drawn by
-// one offscreen renderer. A cloud is {points: Float32Array of x y z, color, transform?}, with
-// transform the answer's 4x4 row-major [[R, t], [0, 0, 0, 1]]: scene = R @ model + t.
+// one offscreen renderer. A cloud is {points: Float32Array of x y z, color, transform?, size?},
+// with transform the answer's 4x4 row-major [[R, t], [0, 0, 0, 1]] (scene = R @ model + t) and
+// size its points' size relative to the others'.
 
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 
 const BACKGROUND = 0x0f1114;
 
-function pointsObject({ points, color, transform }, size) {
+function pointsObject({ points, color, transform, size: relative = 1 }, size) {
   const geometry = new THREE.BufferGeometry();
   geometry.setAttribute("position", new THREE.BufferAttribute(points, 3));
-  const material = new THREE.PointsMaterial({ color, size, sizeAttenuation: true });
+  const material = new THREE.PointsMaterial({ color, size: size * relative, sizeAttenuation: true });
   const object = new THREE.Points(geometry, material);
   if (transform) placeAt(object, transform);
   return object;
