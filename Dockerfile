@@ -8,6 +8,7 @@
 #   curl -s localhost:8000/health
 #   curl -s -X POST localhost:8000/align -H 'Content-Type: application/json' \
 #       --data @models/sample_cloud.json
+#   open http://localhost:8000/ui/ : the web console, shipped in the package (service/console)
 #
 # Build arguments:
 #   ONNXRUNTIME   "onnxruntime" (the default: CPU) or "onnxruntime-gpu": swaps in the CUDA
