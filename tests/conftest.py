@@ -49,12 +49,28 @@ def backend(request, tmp_path_factory) -> Backend:
 
 @pytest.fixture(scope="session")
 def service(tmp_path_factory):
-    """One real server (uvicorn in a thread, the shipped model and gallery, open, keeping recent
-    alignments) shared by the tests that only add references of their own names."""
+    """One real server (uvicorn in a thread, the shipped model, open, so keeping recent
+    alignments) with two real parts registered through its API, the mug and the bunny of
+    pybullet_data, shared by the tests that only add references of their own names."""
+    pybullet_data = pytest.importorskip("pybullet_data")
     if not MODEL.path.exists():
         pytest.skip(f"no ONNX model at {MODEL.path}")
     data_dir = tmp_path_factory.mktemp("service")
-    server = ThreadServer(Settings(gallery=GallerySettings(data_dir=data_dir, self_check_poses=1)))
+    server = ThreadServer(
+        Settings(
+            model=MODEL.model_copy(update={"gallery": data_dir / "no-seed.npz"}),
+            gallery=GallerySettings(data_dir=data_dir, self_check_poses=1),
+        )
+    )
+    for name, mesh in (("mug", "objects/mug.obj"), ("bunny", "bunny.obj")):
+        path = Path(pybullet_data.getDataPath()) / mesh
+        answer = server.client.post(
+            "/references",
+            data={"name": name},
+            files={"file": (path.name, path.read_bytes())},
+            params={"self_check": "false"},
+        )
+        assert answer.status_code == 201, answer.text
     yield server
     server.stop()
 
