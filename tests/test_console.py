@@ -70,8 +70,11 @@ def test_a_reference_s_points_and_self_check(service):
     assert raw.headers["content-type"] == "application/octet-stream"
     assert len(raw.content) == described["num_points"] * 12
     assert hashlib.sha256(raw.content).hexdigest() == described["points_sha256"]
-    checks = client.get("/references/mug/self_check", params={"poses": 2}).json()
-    assert len(checks) == 2 and all(check["label_ok"] for check in checks)
+    one, two = (client.get("/references/mug/self_check", params={"poses": n}) for n in (1, 2))
+    assert one.status_code == two.status_code == 200, (one.text, two.text)
+    assert 0 < len(one.json()) < len(two.json())  # one entry or more a pose
+    keys = {"label_ok", "rotation_error_deg", "alignment_error_normalized"}
+    assert all(keys <= set(check) for check in two.json())
     assert client.get("/references/nothing/points").status_code == 404
     assert client.get("/references/nothing/self_check").status_code == 404
     assert client.get("/references/mug/self_check", params={"poses": 0}).status_code == 422

@@ -187,7 +187,7 @@ function showSelfCheck(checks, into) {
         el(
           "tr",
           {},
-          el("td", {}, `${index + 1}`),
+          el("td", {}, check.render ? `${index + 1} (${check.render})` : `${index + 1}`),
           el("td", {}, check.label_ok ? "yes" : "NO"),
           el("td", { class: "num" }, `${number(check.rotation_error_deg, 3)}°`),
           el("td", { class: "num" }, number(check.alignment_error_normalized, 3)),
