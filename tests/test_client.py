@@ -98,6 +98,8 @@ def test_register_a_mesh_file(client):
     path = Path(pytest.importorskip("pybullet_data").getDataPath()) / "duck.obj"
     reference = client.register("client-duck", path, replace=True)
     assert reference.num_points == 2048 and reference.self_check  # the service's self-check
+    assert reference.symmetry["kind"] in ("none", "revolution", "discrete")
+    assert isinstance(reference.warnings, list)
     client.delete("client-duck")
 
 

@@ -110,7 +110,9 @@ class Reference:
     num_points: int
     scale: float
     points_sha256: str | None
-    self_check: list[dict[str, Any]] | None  # registration only: the part aligned to itself
+    symmetry: dict[str, Any] | None  # {"kind": "none" | "revolution" | "discrete", ...}
+    self_check: list[dict[str, Any]] | None  # registration only: renders of it aligned
+    warnings: list[str]  # registration only: what the check found that a person should know
     raw: dict[str, Any] = field(repr=False)
 
     @classmethod
@@ -120,6 +122,8 @@ class Reference:
             num_points=answer["num_points"],
             scale=answer["scale"],
             points_sha256=answer.get("points_sha256"),
+            symmetry=answer.get("symmetry"),
             self_check=answer.get("self_check"),
+            warnings=list(answer.get("warnings", [])),
             raw=answer,
         )

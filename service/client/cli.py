@@ -213,7 +213,9 @@ def describe_reference(reference: Reference) -> str:
         right = sum(bool(check.get("label_ok")) for check in checks)
         worst = max(float(check.get("rotation_error_deg", 0.0)) for check in checks)
         text += f"\n  self-check: {right}/{len(checks)} recognised, worst rotation {worst:.1f} deg"
-    return text
+    if reference.symmetry:
+        text += f"\n  symmetry: {reference.symmetry.get('kind')}"
+    return "\n".join([text, *(f"  warning: {warning}" for warning in reference.warnings)])
 
 
 def report_error(error: ServiceError, as_json: bool) -> int:

@@ -150,19 +150,23 @@ async function selectReference(reference, selfCheck = null) {
     { onclick: () => alignRandomPose(reference.name).catch(fail), id: "try-pose" },
     "align it in a random pose",
   );
-  $("result").replaceChildren(
+  $("result").replaceChildren(...present([
     el("div", { class: "big" }, reference.name),
     table([
       ["points", reference.num_points],
       ["scale (radius)", number(reference.scale)],
+      ["symmetry", reference.symmetry?.kind ?? "—"],
       ["points sha256", (reference.points_sha256 || "").slice(0, 16) + "…"],
     ]),
+    reference.warnings?.length
+      ? el("ul", { class: "reasons" }, ...reference.warnings.map((warning) => el("li", {}, warning)))
+      : null,
     el("h3", {}, "Try it: half of its own points, 1 % noise, a random pose"),
     tryIt,
     el("h3", {}, "Self-check: the part aligned against random poses of itself"),
     run,
     checks,
-  );
+  ]));
   if (selfCheck) showSelfCheck(selfCheck, checks);
   say(`${reference.name}: ${reference.num_points} points`);
 }
@@ -182,13 +186,13 @@ function showSelfCheck(checks, into) {
     el(
       "table",
       {},
-      el("tr", {}, el("th", {}, "pose"), el("th", {}, "recognised"), el("th", {}, "rotation error"), el("th", {}, "alignment error")),
+      el("tr", {}, el("th", {}, "render"), el("th", {}, "answered"), el("th", {}, "rotation error"), el("th", {}, "alignment error")),
       ...checks.map((check, index) =>
         el(
           "tr",
           {},
           el("td", {}, check.render ? `${index + 1} (${check.render})` : `${index + 1}`),
-          el("td", {}, check.label_ok ? "yes" : "NO"),
+          el("td", {}, check.label_ok ? "right" : `WRONG: ${check.label ?? "?"}`),
           el("td", { class: "num" }, `${number(check.rotation_error_deg, 3)}°`),
           el("td", { class: "num" }, number(check.alignment_error_normalized, 3)),
         ),
