@@ -47,21 +47,22 @@ def backend(request, tmp_path_factory) -> Backend:
     return Backend(request.param, tmp_path_factory, server)
 
 
+def empty_server(data_dir: Path, **groups) -> ThreadServer:
+    """The shipped model, an empty gallery (so it starts at once), a one-render self-check."""
+    if not MODEL.path.exists():
+        pytest.skip(f"no ONNX model at {MODEL.path}")
+    model = MODEL.model_copy(update={"gallery": data_dir / "no-seed.npz"})
+    gallery = GallerySettings(data_dir=data_dir, self_check_poses=1)
+    return ThreadServer(Settings(model=model, gallery=gallery, **groups))
+
+
 @pytest.fixture(scope="session")
 def service(tmp_path_factory):
     """One real server (uvicorn in a thread, the shipped model, open, so keeping recent
     alignments) with two real parts registered through its API, the mug and the bunny of
     pybullet_data, shared by the tests that only add references of their own names."""
     pybullet_data = pytest.importorskip("pybullet_data")
-    if not MODEL.path.exists():
-        pytest.skip(f"no ONNX model at {MODEL.path}")
-    data_dir = tmp_path_factory.mktemp("service")
-    server = ThreadServer(
-        Settings(
-            model=MODEL.model_copy(update={"gallery": data_dir / "no-seed.npz"}),
-            gallery=GallerySettings(data_dir=data_dir, self_check_poses=1),
-        )
-    )
+    server = empty_server(tmp_path_factory.mktemp("service"))
     for name, mesh in (("mug", "objects/mug.obj"), ("bunny", "bunny.obj")):
         path = Path(pybullet_data.getDataPath()) / mesh
         answer = server.client.post(
@@ -80,16 +81,8 @@ ADMIN_KEY, READ_KEY = "tests-admin-key-0123", "tests-read-key-4567"
 
 @pytest.fixture(scope="session")
 def keyed_service(tmp_path_factory):
-    """A server with an admin and a read key and an empty gallery (so it starts at once)."""
-    if not MODEL.path.exists():
-        pytest.skip(f"no ONNX model at {MODEL.path}")
-    data_dir = tmp_path_factory.mktemp("keyed")
-    server = ThreadServer(
-        Settings(
-            model=MODEL.model_copy(update={"gallery": data_dir / "no-seed.npz"}),
-            gallery=GallerySettings(data_dir=data_dir, self_check_poses=1),
-            auth=AuthSettings(keys={ADMIN_KEY: "admin", READ_KEY: "read"}),
-        )
-    )
+    """A server with an admin and a read key and an empty gallery."""
+    keys = AuthSettings(keys={ADMIN_KEY: "admin", READ_KEY: "read"})
+    server = empty_server(tmp_path_factory.mktemp("keyed"), auth=keys)
     yield server
     server.stop()
