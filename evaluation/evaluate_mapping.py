@@ -26,6 +26,7 @@ import numpy as np
 from evaluation.cases import make_cases
 from evaluation.metrics import geodesic_deg
 from service.engine.alignment import alignment_error, to_model_frame
+from service.engine.confidence import Calibration
 from service.engine.correspondences import correspondence_quality, mapped_pairs
 from service.engine.engine import Engine
 from service.engine.mapping import Mapper
@@ -45,7 +46,12 @@ def prepare_engine(
 ) -> tuple[Engine, dict]:
     """The shipped gallery, plus every unseen object registered as a user would: as its mesh
     (an STL upload), or with ``as_mesh=False`` as the 2,048-point cloud sampled on it."""
-    engine = Engine(Mapper(model, use_cuda=False), EngineSettings())
+    calibration = Path(model).parent / "confidence.json"  # shipped beside the model
+    engine = Engine(
+        Mapper(model, use_cuda=False),
+        EngineSettings(),
+        Calibration.load(calibration) if calibration.exists() else None,
+    )
     references, _ = load_gallery(gallery)
     references = [engine.complete(reference) for reference in references]
     meshes = load_object_meshes(unseen_specs)
