@@ -143,7 +143,8 @@ def test_fit_and_coverage_tell_the_right_part_from_a_larger_one():
     scene = sample_surface_faces(trimesh.creation.box(extents=(0.05, 0.05, 0.05)), 600, 3)[0]
     pose = np.eye(3)[None], np.zeros((1, 3))
     tolerance = 0.04 * radius(small.points)
-    occupancy = Occupancy.around(scene, tolerance, np.random.default_rng(0))
+    spacing, _ = cKDTree(scene).query(scene, k=2)
+    occupancy = Occupancy.around(scene, tolerance, float(np.median(spacing[:, 1])))
     shares = {}
     for name, surface in (("small", small), ("large", large)):
         shares[name] = (

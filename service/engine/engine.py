@@ -406,7 +406,7 @@ class Engine:
         for reading in readings:
             if answer is not None and answer.fit * answer.coverage >= settings.excellent:
                 break
-            found = self._align_reading(query, reading.points)
+            found = self._align_reading(query, reading.points, reading.spacing)
             found.points_set_aside = reading.set_aside
             if answer is None or found.fit * found.coverage > answer.fit * answer.coverage:
                 answer = found
@@ -457,7 +457,7 @@ class Engine:
                 break
         answer.reasons = reasons
 
-    def _align_reading(self, query: Query, scene: np.ndarray) -> Alignment:
+    def _align_reading(self, query: Query, scene: np.ndarray, spacing: float) -> Alignment:
         """Steps 1-8 on one reading of the observation."""
         snapshot, settings, clock, rng = query.snapshot, self.settings, query.clock, query.rng
         # 1. Normalise: subsample to the network's size (centring, scaling in map()).
@@ -477,7 +477,7 @@ class Engine:
         clock.lap("classify")
 
         # 4-6. The whole part: hypotheses from its principal axes, verified, the best refined.
-        search = Search(self, snapshot, observed, observed_mapped, query.viewpoint, rng, clock)
+        search = Search(self, snapshot, observed, observed_mapped, spacing, query, clock)
         chosen = query.sources
         whole = [s for s in chosen if s == "principal-axes"]
         fits = search.run({row: whole for row in shortlist}, query.refine, WHOLE_REFINED)
@@ -713,21 +713,21 @@ FAR_BELOW = 0.5  # nor one below this share of the best hypothesis before refini
 class Search:
     """Steps 4-6 for one query: hypothesise, verify, refine, for a set of candidates."""
 
-    def __init__(self, engine, snapshot, observed, observed_mapped, viewpoint, rng, clock):
+    def __init__(self, engine, snapshot, observed, observed_mapped, spacing, query, clock):
         settings = engine.settings
         self.settings = settings
         self.snapshot = snapshot
         self.labels = snapshot.classifier.labels
         self.observed = observed
         self.observed_mapped = observed_mapped
-        self.viewpoint = viewpoint
-        self.rng = rng
+        self.viewpoint = query.viewpoint
+        self.rng = rng = query.rng
         self.clock = clock
         self.quick = observed[subsample(observed, QUICK_POINTS, rng)]
         self.cheap = observed[subsample(observed, settings.verify_points, rng)]
         self.refine_on = observed[subsample(observed, settings.icp_points, rng)]
         # "is an observed point near here", at the tolerance or the observation's own spacing
-        self.occupancy = Occupancy.around(observed, settings.tolerance * radius(observed), rng)
+        self.occupancy = Occupancy.around(observed, settings.tolerance * radius(observed), spacing)
 
     def run(self, planned: dict[int, list[str]], refine: bool, budget: int) -> list[Fit]:
         """Verified fits of every candidate row from its planned sources; the best ``budget``

@@ -47,6 +47,7 @@ class Observation:
     points: np.ndarray  # (M, 3) what is taken to be the part
     set_aside: int  # points of the original cloud taken to be support, strays or clutter
     support: np.ndarray | None  # (4,) the table's plane n . x = d, if one was found
+    spacing: float  # the median distance between neighbouring points of a 1,024-point sample
 
 
 def spacing(points: np.ndarray, tree: cKDTree, rng: np.random.Generator) -> float:
@@ -187,4 +188,4 @@ def _reading(points, sample, chosen, support, step) -> Observation:
     if support is not None:
         inside &= points @ support[:3] - support[3] > PLANE_SPACINGS * step
     observed = points[inside]
-    return Observation(observed, len(points) - len(observed), support)
+    return Observation(observed, len(points) - len(observed), support, step)

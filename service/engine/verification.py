@@ -18,54 +18,47 @@ depth-camera views over a gallery of 58 parts, every part tried: fit alone picke
 part for 14 %, coverage alone 97 %, the product 98 %.
 
 ``Occupancy`` answers "is there an observed point near here" for thousands of points at once:
-the observed points' voxels and their neighbours, as sorted integer keys.
+the observed points' voxels and their neighbours, in a dense grid over the observation.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.ndimage import binary_dilation
 
 from service.engine.icp import Surface
 
 SPACINGS = 1.5  # the occupancy's voxel is at least this many observed-point spacings
 PATCH_SPACINGS = 2.5  # a sample's tangent patch reaches this many sample spacings
-NEIGHBOURS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
-OFFSET = 1 << 20  # voxel coordinates are shifted by this to make them non-negative keys
 
 
 class Occupancy:
-    """The voxels within one voxel of an observed point, for O(log n) "is a point near" tests."""
+    """The voxels within one voxel of an observed point, for O(1) "is a point near" tests: a
+    dense grid over the observation's box (the voxel is at least 4 % of its radius, so at most
+    some 54^3 cells), dilated by one voxel."""
 
     @classmethod
-    def around(cls, observed: np.ndarray, tolerance: float, rng: np.random.Generator) -> Occupancy:
+    def around(cls, observed: np.ndarray, tolerance: float, spacing: float) -> Occupancy:
         """At ``tolerance``, or coarser where the observation is sparser: a voxel of at least
         ``SPACINGS`` times the median distance between neighbouring observed points."""
-        sample = observed[rng.choice(len(observed), size=min(96, len(observed)), replace=False)]
-        distance, _ = cKDTree(observed).query(sample, k=2)
-        return cls(observed, max(tolerance, SPACINGS * float(np.median(distance[:, 1]))))
+        return cls(observed, max(tolerance, SPACINGS * spacing))
 
     def __init__(self, points: np.ndarray, voxel: float):
         self.voxel = float(voxel)
         self.low = points.min(axis=0) - 2 * self.voxel
-        cells = np.unique(self._cells(points), axis=0)
-        near = (cells[:, None, :] + NEIGHBOURS[None]).reshape(-1, 3)
-        self.keys = np.unique(self._key(near))
-
-    def _cells(self, points: np.ndarray) -> np.ndarray:
-        cells = np.floor((points - self.low) / self.voxel)
-        return np.clip(cells, -OFFSET + 1, OFFSET - 2).astype(np.int64)
-
-    @staticmethod
-    def _key(cells: np.ndarray) -> np.ndarray:
-        shifted = cells + OFFSET
-        return (shifted[..., 0] << 42) | (shifted[..., 1] << 21) | shifted[..., 2]
+        cells = np.floor((points - self.low) / self.voxel).astype(np.intp)
+        self.shape = cells.max(axis=0) + 3
+        grid = np.zeros(self.shape, dtype=bool)
+        grid[cells[:, 0], cells[:, 1], cells[:, 2]] = True
+        self.grid = binary_dilation(grid, structure=np.ones((3, 3, 3), dtype=bool))
 
     def near(self, points: np.ndarray) -> np.ndarray:
         """Whether an observed point lies within about a voxel of each of ``points`` (..., 3)."""
-        keys = self._key(self._cells(points))
-        slot = np.clip(np.searchsorted(self.keys, keys), 0, len(self.keys) - 1)
-        return self.keys[slot] == keys
+        cells = np.floor((points - self.low) / self.voxel).astype(np.intp)
+        inside = np.all((cells >= 0) & (cells < self.shape), axis=-1)
+        for k in range(3):
+            np.clip(cells[..., k], 0, self.shape[k] - 1, out=cells[..., k])
+        return self.grid[cells[..., 0], cells[..., 1], cells[..., 2]] & inside
 
 
 def surface_distance(
