@@ -20,12 +20,15 @@ long the computation took when it had to compute them.
 **Clouds.** ``--clouds-per-object`` clouds of each of the first 40 shipped references (of the
 first N when a size N under 40 is measured), 2,048 points each, never the registered points:
 2,048 of the reference's points drawn at random (with replacement), each moved within the
-surface's tangent plane by Gaussian jitter of half the point spacing (the median distance to
-the nearest other point; along the reference's stored normals), so the cloud is an independent
-resample of the same surface; then moved by a random rotation (uniform over SO(3)) and a
-translation in a random direction of up to twice the reference's scale, and shuffled. Seeded by
-``--seed``, the reference's index and the cloud's index. Consecutive requests ask for different
-parts.
+surface's tangent plane (the reference's stored normals) by Gaussian jitter of one point spacing
+(the median distance to the nearest other point); then moved by a random rotation (uniform over
+SO(3)) and a translation in a random direction of up to twice the reference's scale, and
+shuffled. Seeded by ``--seed``, the reference's index and the cloud's index. Consecutive requests
+ask for different parts. Such a cloud stands for an independent sample of the mesh's surface
+(the evaluation's ``so3`` family, which needs pybullet's meshes): on 14-20 shipped parts, against
+fresh samples of their meshes, the engine's fit and coverage agreed within 0.01 and its median
+time within about 10 %. Less jitter would not do: with half a spacing the points drawn twice stay
+clumped, coverage falls to 0.93 and the engine searches 2.5-3 times as long.
 
 **Measured**, for each size (and, where onnxruntime offers CUDA, for the CUDA execution provider
 beside the CPU one: ``--providers``):
@@ -93,7 +96,7 @@ BASE_REFERENCES = 40  # the gallery the latency targets are stated for
 TARGET_MS = {"raw": 8.0, "json": 10.0}
 TARGET_GROWTH_MS = 1.0
 CLOUD_POINTS = 2048
-JITTER_SPACINGS = 0.5  # tangential jitter of a resampled point, in point spacings
+JITTER_SPACINGS = 1.0  # tangential jitter of a resampled point, in point spacings
 PADDING_RECIPE = 1  # bump when padding_points changes: the cache key follows it
 PADDING_SEED = 1000
 PADDING_STRETCH = (0.7, 1.3)
