@@ -12,7 +12,7 @@ own, seeded before it starts. 40 references are the first 40 of the shipped gall
 from the shipped ones: padding ``i`` is shipped reference ``i mod 45`` turned by a random rotation
 and stretched along x, y and z by random factors in 0.7-1.3 (seeded by ``i``: a distinct shape
 each, not a copy in another pose), computed with the engine's own ``Engine.make_reference`` as a
-registration computes it (about 1-2 s of CPU each). They are cached on disk
+registration computes it (1-3 s each on a busy 2-core machine). They are cached on disk
 (``--padding-cache``, in chunks of 50, so an interrupted run keeps what it computed) under a key
 of the model's hash, the engine's settings, the recipe and the shipped points; the run prints how
 long the computation took when it had to compute them.
@@ -273,14 +273,14 @@ def padding_references(
     cache_dir: Path | None,
     workers: int = 1,
     progress: Callable[[str], None] = print,
-) -> tuple[list[Reference], float | None]:
+) -> tuple[list[Reference], int, float | None]:
     """``count`` padding references (``padding_points``), computed with ``engine`` (or as many
     worker processes with the same model and settings) and cached in ``cache_dir``.
 
-    Returns them and the seconds their computation took (None when all came from the cache).
+    Returns them, how many were computed (not in the cache) and the seconds that took.
     """
     if count <= 0:
-        return [], None
+        return [], 0, None
     key = padding_key(shipped, engine.mapper.model_hash, engine.settings)
     code = engine_code_hash()
     chunks = range(0, count, PADDING_CHUNK)
@@ -300,7 +300,7 @@ def padding_references(
         for i in range(len(held[start]), min(PADDING_CHUNK, count - start))
     ]
     if not missing:
-        return [r for start in chunks for r in held[start]][:count], None
+        return [r for start in chunks for r in held[start]][:count], 0, None
     progress(f"computing {len(missing)} padding references ({workers} process(es)) ...")
     began = time.perf_counter()
     done = 0
@@ -319,7 +319,7 @@ def padding_references(
             elapsed = time.perf_counter() - began
             progress(f"  padding: {done}/{len(missing)} computed in {elapsed:.0f} s")
     seconds = time.perf_counter() - began
-    return [r for start in chunks for r in held[start]][:count], seconds
+    return [r for start in chunks for r in held[start]][:count], len(missing), seconds
 
 
 def _compute(
@@ -1048,7 +1048,7 @@ def run(args: argparse.Namespace, progress: Callable[[str], None] = print) -> di
         shipped[: min(BASE_REFERENCES, *args.references)], args.clouds_per_object, args.seed
     )
     needed = max(args.references) - len(shipped)
-    padding, padding_s = padding_references(
+    padding, computed, padding_s = padding_references(
         engine, shipped, needed, args.padding_cache, args.padding_workers, progress
     )
     report: dict = {
@@ -1075,7 +1075,7 @@ def run(args: argparse.Namespace, progress: Callable[[str], None] = print) -> di
         "targets": {"median_ms": TARGET_MS, "growth_ms": TARGET_GROWTH_MS},
         "padding": {
             "references": len(padding),
-            "computed": None if padding_s is None else needed,
+            "computed": computed,
             "compute_s": padding_s,
             "workers": args.padding_workers,
             "cache": None if args.padding_cache is None else str(args.padding_cache),

@@ -62,11 +62,11 @@ def test_padding_references_are_new_shapes_computed_once_then_cached(shipped, tm
         rtol=0.01,
     )
     engine = Engine(Mapper(MODEL.path, 1, 1, False))
-    computed, seconds = align_http.padding_references(engine, base, 1, tmp_path, progress=print)
-    assert seconds is not None and len(computed) == 1 and not computed[0].missing
+    computed, count, seconds = align_http.padding_references(engine, base, 1, tmp_path)
+    assert count == 1 and seconds is not None and len(computed) == 1 and not computed[0].missing
     assert computed[0].name.startswith("pad-0000-")
-    cached, seconds = align_http.padding_references(engine, base, 1, tmp_path, progress=print)
-    assert seconds is None
+    cached, count, seconds = align_http.padding_references(engine, base, 1, tmp_path)
+    assert count == 0 and seconds is None
     assert cached[0].points_sha256 == computed[0].points_sha256
     assert np.array_equal(cached[0].field, computed[0].field)
 
