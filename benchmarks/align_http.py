@@ -27,8 +27,9 @@ shuffled. Seeded by ``--seed``, the reference's index and the cloud's index. Con
 ask for different parts. Such a cloud stands for an independent sample of the mesh's surface
 (the evaluation's ``so3`` family, which needs pybullet's meshes): on 14-20 shipped parts, against
 fresh samples of their meshes, the engine's fit and coverage agreed within 0.01 and its median
-time within about 10 %. Less jitter would not do: with half a spacing the points drawn twice stay
-clumped, coverage falls to 0.93 and the engine searches 2.5-3 times as long.
+time within about 10 %. With half a spacing the points drawn twice stay clumped: coverage fell to
+0.96 and the mean time rose by a third (by 2.5-3 times before the surroundings' change of
+``ce892a6``).
 
 **Measured**, for each size (and, where onnxruntime offers CUDA, for the CUDA execution provider
 beside the CPU one: ``--providers``):
