@@ -10,8 +10,9 @@ by ``evaluation.served.ServiceProcess``) on a free loopback port with a data dir
 own, seeded before it starts. 40 references are the first 40 of the shipped gallery
 (``models/gallery.npz``); a larger size adds the other shipped ones, then padding references made
 from the shipped ones: padding ``i`` is shipped reference ``i mod 45`` turned by a random rotation
-and stretched along x, y and z by random factors in 0.7-1.3 (seeded by ``i``: a distinct shape
-each, not a copy in another pose), computed with the engine's own ``Engine.make_reference`` as a
+and stretched along x, y and z by random factors in 0.7-1.3, the largest at least 1.4 times the
+smallest (seeded by ``i``: a distinct shape each, neither a copy in another pose nor the part
+resized), computed with the engine's own ``Engine.make_reference`` as a
 registration computes it (1-3 s each on a busy 2-core machine). They are cached on disk
 (``--padding-cache``, in chunks of 50, so an interrupted run keeps what it computed) under a key
 of the model's hash, the engine's settings, the recipe and the shipped points; the run prints how
@@ -98,9 +99,12 @@ TARGET_MS = {"raw": 8.0, "json": 10.0}
 TARGET_GROWTH_MS = 1.0
 CLOUD_POINTS = 2048
 JITTER_SPACINGS = 1.0  # tangential jitter of a resampled point, in point spacings
-PADDING_RECIPE = 1  # bump when padding_points changes: the cache key follows it
+PADDING_RECIPE = 2  # bump when padding_points changes: the cache key follows it
 PADDING_SEED = 1000
 PADDING_STRETCH = (0.7, 1.3)
+# the largest stretch over the smallest, at least: a nearly even stretch only resizes the part
+# (a size variant the engine may take for its base: 13 of 80 clouds did, with no such bound)
+PADDING_ANISOTROPY = 1.4
 PADDING_CHUNK = 50  # references per cache file
 STEPS = (
     "surroundings",
@@ -224,11 +228,14 @@ def encode(label: str, points: np.ndarray, rotation: np.ndarray, translation: np
 
 def padding_points(shipped: list[Reference], index: int) -> tuple[str, np.ndarray]:
     """Padding reference ``index``: shipped reference ``index mod len(shipped)``, turned by a
-    random rotation, then stretched along x, y and z by random factors (a distinct shape)."""
+    random rotation, then stretched along x, y and z by random factors, one at least
+    ``PADDING_ANISOTROPY`` times another (a distinct shape, not the part resized)."""
     base = shipped[index % len(shipped)]
     rng = np.random.default_rng([PADDING_SEED, index])
     turn = Rotation.random(random_state=rng).as_matrix()
     stretch = rng.uniform(*PADDING_STRETCH, 3)
+    while stretch.max() < PADDING_ANISOTROPY * stretch.min():
+        stretch = rng.uniform(*PADDING_STRETCH, 3)
     points = (np.asarray(base.points, dtype=np.float64) @ turn.T) * stretch
     return f"pad-{index:04d}-{base.name}", points.astype(np.float32)
 
