@@ -44,7 +44,10 @@ beside the CPU one: ``--providers``):
 - ``DELETE /references/{name}`` and ``POST /references`` of that reference again, without the
   registration check (``self_check=false``) and with it (the default: independent renders of the
   new part aligned against the whole gallery);
-- the growth from 40 references to the largest size measured;
+- the growth from 40 references to the largest size measured: the difference of the medians
+  above, and paired: both galleries' services up at once, each cloud sent to one then the other
+  (and aligned likewise by an engine of each gallery in this process), the median of the
+  per-cloud differences, which a machine whose load changes from minute to minute skews less;
 - the classifier's refit for 100 references (after one change, and from scratch).
 
 Every count is fixed and the run stops by itself; nothing leaves loopback. The figures are
@@ -57,6 +60,7 @@ the in-process engine alike.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import hashlib
 import importlib.util
@@ -103,7 +107,7 @@ PADDING_RECIPE = 2  # bump when padding_points changes: the cache key follows it
 PADDING_SEED = 1000
 PADDING_STRETCH = (0.7, 1.3)
 # the largest stretch over the smallest, at least: a nearly even stretch only resizes the part
-# (a size variant the engine may take for its base: 13 of 80 clouds did, with no such bound)
+# (a size variant the engine may take for its base: 16 of 80 clouds were, with no such bound)
 PADDING_ANISOTROPY = 1.4
 PADDING_CHUNK = 50  # references per cache file
 STEPS = (
@@ -647,6 +651,81 @@ def measure(
     return result
 
 
+def paired_growth(
+    small: list[Reference],
+    large: list[Reference],
+    provider: str,
+    args: argparse.Namespace,
+    engine: Engine,
+    model_hash: str,
+    clouds: list[Cloud],
+    workdir: Path,
+) -> dict:
+    """The growth from ``small`` to ``large`` with both galleries up at once: each cloud sent
+    (raw body) to one service then to the other, the first in turn, and aligned likewise by an
+    engine of each gallery in this process. The median of the per-cloud differences is not
+    skewed by the machine's load changing between runs minutes apart, as medians are."""
+    title = f"[{len(small)} and {len(large)} references, {provider}]"
+    print(f"{title} both services, each cloud to one then the other", flush=True)
+    with contextlib.ExitStack() as stack:
+        clients = []
+        for gallery in (small, large):
+            data_dir = workdir / f"paired-{len(gallery)}-{provider}"
+            seed_store(data_dir, gallery, model_hash)
+            service = stack.enter_context(serve(data_dir, args, provider))
+            clients.append(stack.enter_context(httpx.Client(base_url=service.url, timeout=300.0)))
+
+        def post(side: int, cloud: Cloud) -> tuple[float, float]:
+            began = time.perf_counter()
+            answer = clients[side].post("/align", content=cloud.raw_body, headers=RAW_TYPE)
+            elapsed = (time.perf_counter() - began) * 1e3
+            if answer.status_code != 200:
+                raise RuntimeError(f"/align answered {answer.status_code}: {answer.text[:300]}")
+            return elapsed, answer.json()["timings_ms"]["total"]
+
+        http = in_turn(post, clouds, args.requests, args.warmup)
+    print(f"{title} both engines in-process, each cloud to one then the other", flush=True)
+    engines = [Engine(engine.mapper, engine.settings, engine.calibration) for _ in range(2)]
+    for side, gallery in enumerate((small, large)):
+        engines[side].load(gallery)
+
+    def align(side: int, cloud: Cloud) -> tuple[float, float]:
+        began = time.perf_counter()
+        result = engines[side].align(cloud.points)
+        return (time.perf_counter() - began) * 1e3, result.timings_ms["total"]
+
+    return {"http_raw": http, "engine": in_turn(align, clouds, args.requests, args.warmup)}
+
+
+def in_turn(
+    one: Callable[[int, Cloud], tuple[float, float]],
+    clouds: list[Cloud],
+    requests: int,
+    warmup: int,
+) -> dict:
+    """``one(side, cloud)`` -> (latency, the answer's total) for side 0 and side 1 on each
+    cloud, the side that goes first alternating; medians of each side and of the differences
+    (side 1 - side 0), with their quartiles."""
+    pairs = []
+    for index in range(warmup + requests):
+        cloud = clouds[index % len(clouds)]
+        got: list = [None, None]
+        for side in (0, 1) if index % 2 == 0 else (1, 0):
+            got[side] = one(side, cloud)
+        if index >= warmup:
+            pairs.append(got)
+    values = np.array(pairs)  # (requests, side, latency | total)
+    result = {"requests": requests}
+    for column, name in enumerate(("latency", "total")):
+        growth = values[:, 1, column] - values[:, 0, column]
+        result[name] = {
+            "median_ms": [float(np.median(values[:, side, column])) for side in (0, 1)],
+            "growth_median_ms": float(np.median(growth)),
+            "growth_quartiles_ms": [float(q) for q in np.percentile(growth, [25, 75])],
+        }
+    return result
+
+
 # --- accuracy --------------------------------------------------------------------------------
 
 
@@ -856,7 +935,7 @@ def print_report(report: dict) -> None:
     row("load average (1 min) after", [figure(r["load_average"][0], 2) for r in runs])
     print()
     print("median ms per step (answers' timings_ms: HTTP raw | HTTP json | engine in-process)")
-    row("references", columns, width=width + 8)
+    row("references", columns, width=width + 12)
     steps = list(runs[0]["engine"]["steps_ms"])
     for step in steps:
         row(
@@ -868,19 +947,34 @@ def print_report(report: dict) -> None:
                 )
                 for r in runs
             ],
-            width=width + 8,
+            width=width + 12,
         )
     for growth in report.get("growth", []):
         print()
         print(
-            f"growth {growth['from']} -> {growth['to']} references, {growth['provider']} "
-            "(median ms):"
+            f"growth {growth['from']} -> {growth['to']} references, {growth['provider']}; "
+            f"target <= +{TARGET_GROWTH_MS:g} ms"
         )
+        print("  difference of the medians above (runs minutes apart):")
         for key, value in growth["ms"].items():
+            print(f"    {key:<24} {value:+8.2f} ms   {mark(value <= TARGET_GROWTH_MS)}")
+        paired = growth.get("paired")
+        if paired:
             print(
-                f"  {key:<10} {value:+.2f} ms   target <= +{TARGET_GROWTH_MS:g} ms: "
-                f"{mark(value <= TARGET_GROWTH_MS)}"
+                "  paired: both galleries up at once, each cloud to one then the other "
+                f"({paired['engine']['requests']} clouds); median of the differences "
+                "[quartiles] (medians of each side)"
             )
+            for where, key in (("http raw", "http_raw"), ("engine", "engine")):
+                for name in ("latency", "total"):
+                    value = paired[key][name]
+                    low, high = value["growth_quartiles_ms"]
+                    sides = " -> ".join(f"{v:.1f}" for v in value["median_ms"])
+                    print(
+                        f"    {where + ' ' + name:<24} {value['growth_median_ms']:+8.2f} ms   "
+                        f"{mark(value['growth_median_ms'] <= TARGET_GROWTH_MS)}   "
+                        f"[{low:+.1f}, {high:+.1f}] ({sides})"
+                    )
     refit = report["refit"]
     print()
     print(
@@ -1108,6 +1202,12 @@ def run(args: argparse.Namespace, progress: Callable[[str], None] = print) -> di
                     )
                 )
         report["growth"] = growth(report["runs"])
+        for grown in report["growth"]:
+            small, large = gallery[: grown["from"]], gallery[: grown["to"]]
+            provider = grown["provider"]
+            grown["paired"] = paired_growth(
+                small, large, provider, args, engines[provider], model_hash, clouds, Path(tmp)
+            )
         report["refit"] = refit_time(
             gallery, args.refit_references, args.refit_repeats, settings.engine
         )

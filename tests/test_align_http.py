@@ -75,7 +75,7 @@ def test_padding_references_are_new_shapes_computed_once_then_cached(shipped, tm
 def test_a_tiny_run_needs_no_extra_and_reports_every_figure(tmp_path):
     out = tmp_path / "bench.json"
     arguments = [
-        "--references", "2", "--requests", "3", "--warmup", "1", "--clients", "1", "2",
+        "--references", "1", "2", "--requests", "3", "--warmup", "1", "--clients", "1", "2",
         "--concurrent-requests", "2", "--clouds-per-object", "1", "--registrations", "1",
         "--refit-references", "2", "--refit-repeats", "1", "--padding-cache", "",
         "--providers", "cpu", "--json", str(out),
@@ -102,8 +102,8 @@ def test_a_tiny_run_needs_no_extra_and_reports_every_figure(tmp_path):
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     assert "--accuracy aligns pybullet's meshes" in done.stderr
     report = json.loads(out.read_text())
-    (run,) = report["runs"]
-    assert run["references"] == 2 and run["provider"] == "cpu"
+    assert [(r["references"], r["provider"]) for r in report["runs"]] == [(1, "cpu"), (2, "cpu")]
+    run = report["runs"][1]
     for answers in (run["http_raw"], run["http_json"], run["engine"]):
         assert answers["count"] == 3
         assert {"map", "hypothesise", "refine", "unattributed", "total"} <= set(answers["steps_ms"])
@@ -114,4 +114,8 @@ def test_a_tiny_run_needs_no_extra_and_reports_every_figure(tmp_path):
     registration = run["registration"]
     assert registration["remove"]["count"] == 2
     assert registration["register_checked"]["count"] == 1 and registration["checks"] >= 1
-    assert report["refit"]["references"] == 2 and report["growth"] == []
+    assert report["refit"]["references"] == 2
+    (growth,) = report["growth"]
+    assert (growth["from"], growth["to"]) == (1, 2)
+    for paired in (growth["paired"]["http_raw"], growth["paired"]["engine"]):
+        assert paired["requests"] == 3 and len(paired["latency"]["median_ms"]) == 2
