@@ -2,8 +2,9 @@
 
 ``python -m benchmarks.align_http [--references 40 1000] [--json out.json] [--accuracy]``
 
-The default run needs the runtime and the test extras alone (numpy, scipy, onnxruntime, httpx):
-no pybullet, open3d or torch. ``--accuracy`` also needs pybullet's meshes (the ``train`` extra).
+The default run needs the runtime packages alone (``pip install -e .``: numpy, scipy,
+onnxruntime, httpx): no pybullet, open3d or torch. ``--accuracy`` also needs pybullet's meshes
+(the ``train`` extra).
 
 **Gallery.** For each size the service runs as a real process (``python -m service``, started
 by ``evaluation.served.ServiceProcess``) on a free loopback port with a data directory of its
