@@ -199,16 +199,15 @@ def train(config: TrainConfig, resume: bool = False) -> Path:
         sums = np.zeros(3)
         model.train()
         for names in tqdm(batches, desc=f"epoch {epoch + 1}/{config.epochs}", leave=False):
-            anchor, positive, rotated = (
+            # shared: the rows that are the same surface point in anchor and rotated cloud
+            anchor, positive, rotated, shared = (
                 torch.from_numpy(part).to(device) for part in clouds.batch(list(names), rng)
             )
             mapped = model(torch.cat([anchor, positive, rotated]))
             m_a, m_p, m_i = mapped.chunk(3)
             m_n = m_a[:, torch.randperm(m_a.shape[1], device=device)]  # the shuffled anchor
-            shared = clouds.shared_rows  # eq. (2) compares the points both clouds hold
-            loss, l_m, l_p = total_loss(
-                m_a, m_p, m_n, m_i[:, :shared], config.margin, config.weight, m_a[:, :shared]
-            )
+            # eq. (2) compares the points both clouds hold
+            loss, l_m, l_p = total_loss(m_a, m_p, m_n, m_i, config.margin, config.weight, shared)
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
