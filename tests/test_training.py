@@ -21,6 +21,7 @@ from service.engine.mapping import Mapper  # noqa: E402
 from service.engine.registration import kabsch  # noqa: E402
 from training.data import DataConfig, TrainingClouds, direction_within  # noqa: E402
 from training.export import check_parity, export_onnx, load_checkpoint  # noqa: E402
+from training.export import main as export_main  # noqa: E402
 from training.train import PAPER, config_to_dict, parse_args  # noqa: E402
 from training.train import main as train_main  # noqa: E402
 
@@ -94,6 +95,13 @@ def test_export_matches_pytorch_and_carries_its_input_convention(tiny_run, tmp_p
     with torch.no_grad():
         expected = model(torch.from_numpy(cloud)[None])[0].numpy()
     assert np.abs(mapper.map(cloud) - expected).max() < 1e-4
+
+
+def test_export_of_the_onnx_file_alone(tiny_run, tmp_path):
+    out, _ = tiny_run
+    export_main(["--checkpoint", str(out / "checkpoint.pt"), "--out", str(tmp_path), "--onnx-only"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dpc_mn.onnx"]
+    assert Mapper(tmp_path / "dpc_mn.onnx", use_cuda=False).canonical
 
 
 def view_clouds(mesh, **settings) -> TrainingClouds:
