@@ -21,6 +21,11 @@ the right part, per model, family and object set:
   error and inlier share. ADD-S is symmetry-aware and 0.1 of the diameter is lenient for
   elongated parts, so the same RANSAC over random pairs (each observed point paired with a
   reference point drawn at random) is the floor it must clear: ``random pairs``;
+- ``view quality`` / ``view mapped`` (sensor views): the same two against the reference's
+  rendered view (``service.engine.views.render``, as a mesh upload's 100 views) whose camera
+  direction is nearest the true one, that view's points mapped as a cloud of their own: what
+  the pairing gives when both sides are one camera's view, as single-view training teaches
+  (an oracle choice of the view: an upper bound of what a view-wise pairing could give);
 - ``top1`` / ``top5``: eq. (4)'s classifier over all the references (seen and unseen), fitted
   as the engine fits it (32 augmented full views a reference, ``Engine.view_grid``);
 - with ``--engine``: the engine itself, told the right part (``candidates``) and, for a
@@ -39,6 +44,7 @@ import zlib
 from pathlib import Path
 
 import numpy as np
+import trimesh
 from scipy.spatial import cKDTree
 
 from evaluation.cases import Case, make_cases
@@ -52,6 +58,7 @@ from service.engine.mapping import Mapper
 from service.engine.normalize import radius, subsample
 from service.engine.registration import ransac
 from service.engine.sampling import sample_surface_faces
+from service.engine.views import directions, render
 from service.settings import MODELS_DIR, EngineSettings
 from training.objects import load_manifest, load_object_meshes
 
@@ -69,6 +76,18 @@ class Part:
         self.points = np.asarray(self.points, dtype=np.float64)
         self.scale = radius(self.points)
         self.diameter = diameter(self.points)
+        settings = EngineSettings()  # the rendered views, as Engine.complete renders a mesh's
+        surface = trimesh.sample.sample_surface(
+            mesh, settings.mesh_surface_points, seed=settings.seed + 1
+        )[0]
+        self.visible = render(self.points, self.scale, settings.views, surface, mesh.area)
+        self.directions = directions(settings.views)
+
+    def nearest_view(self, rotation: np.ndarray, translation: np.ndarray, viewpoint) -> np.ndarray:
+        """The points of the rendered view whose camera direction is nearest the true one."""
+        camera = np.asarray(rotation).T @ (np.asarray(viewpoint, np.float64) - translation)
+        toward = camera - self.points.mean(axis=0)
+        return self.points[self.visible[int(np.argmax(self.directions @ toward))]]
 
 
 class Study:
@@ -133,6 +152,17 @@ class Study:
         )
         error = add_s(part.points, rotation, translation, case.rotation, case.translation, 1.0)
         record["random_pairs_ok"] = error / part.diameter < SUCCESS_ADD_S
+        if "viewpoint" in case.params:
+            view = part.nearest_view(case.rotation, case.translation, case.params["viewpoint"])
+            paired = mapped_pairs(mapped, cKDTree(self.engine.map(view)))
+            record["view_quality"] = correspondence_quality(truth, view, paired, part.scale)
+            rotation, translation, _ = ransac(
+                view[paired], observed, threshold, settings.ransac_iterations, rng
+            )
+            error = add_s(part.points, rotation, translation, case.rotation, case.translation, 1.0)
+            record["view_mapped_ok"] = error / part.diameter < SUCCESS_ADD_S
+            record["view_mapped_precise"] = error / part.diameter < PRECISE_ADD_S
+            record["view_mapped_rotation_deg"] = geodesic_deg(rotation, case.rotation)
         scores = self.classifier.scores(grid(mapped))
         right = self.classifier.labels.index(part.name)
         rank = int((scores > scores[right]).sum())
@@ -178,6 +208,13 @@ def summarise(records: list[dict]) -> dict:
         "top1": mean("top1"),
         f"top{TOP}": mean("topk"),
     }
+    if "view_quality" in records[0]:
+        summary["view_quality"] = mean("view_quality")
+        summary["view_mapped_success"] = mean("view_mapped_ok")
+        summary["view_mapped_precise"] = mean("view_mapped_precise")
+        summary["view_mapped_rotation_median_deg"] = float(
+            np.median([r["view_mapped_rotation_deg"] for r in records])
+        )
     if "engine_with_ok" in records[0]:
         with_ok = np.array([r["engine_with_ok"] for r in records])
         without_ok = np.array([r["engine_without_ok"] for r in records])
@@ -198,6 +235,10 @@ COLUMNS = (
     ("mapped_precise", "precise", "{:.1%}"),
     ("random_pairs_success", "random pairs", "{:.1%}"),
     ("mapped_rotation_median_deg", "rot. err. median", "{:.1f}"),
+    ("view_quality", "view: quality", "{:.1%}"),
+    ("view_mapped_success", "view: mapped", "{:.1%}"),
+    ("view_mapped_precise", "view: precise", "{:.1%}"),
+    ("view_mapped_rotation_median_deg", "view: rot. err.", "{:.1f}"),
     ("top1", "eq.(4) top-1", "{:.1%}"),
     (f"top{TOP}", f"top-{TOP}", "{:.1%}"),
     ("engine_success_without_mapped", "engine w/o mapped", "{:.1%}"),
@@ -210,8 +251,8 @@ COLUMNS = (
 
 def table(report: dict) -> str:
     """A Markdown table: one row per model, family and object set."""
-    first = next(iter(report["models"].values()))
-    shown = [c for c in COLUMNS if c[0] in next(iter(first.values()))]
+    present = {key for groups in report["models"].values() for s in groups.values() for key in s}
+    shown = [c for c in COLUMNS if c[0] in present]
     lines = [
         "| model | family | objects | " + " | ".join(c[1] for c in shown) + " |",
         "|---|---|---|" + "---|" * len(shown),
@@ -219,7 +260,7 @@ def table(report: dict) -> str:
     for model, groups in report["models"].items():
         for group, summary in groups.items():
             family, split = group.split("/")
-            cells = [fmt.format(summary[key]) for key, _, fmt in shown]
+            cells = [fmt.format(summary[key]) if key in summary else "" for key, _, fmt in shown]
             lines.append(f"| {model} | {family} | {split} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

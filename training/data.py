@@ -40,6 +40,9 @@ class DataConfig:
     noise: float = 0.0  # Gaussian noise on the rotated cloud, as a share of the radius
     single_views: float = 0.0  # share of triplets that are two cameras' views of the part
     view_angle: float = 60.0  # single views: the second camera within this many degrees
+    view_partner: Literal["view", "whole"] = (
+        "view"  # single views: the rotated cloud is a second camera's view, or the whole surface
+    )
 
 
 def paper_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -110,11 +113,13 @@ class TrainingClouds:
         """What two cameras see of the pool, in the object's frame, and their shared rows.
 
         The first camera is 4-8 radii from the centroid in a uniformly random direction, the
-        second as far (drawn anew) within ``view_angle`` degrees of it. Every pool point gets
-        one random rank; each cloud is the ``points`` best-ranked points its camera sees, so
-        each is a uniform subsample of its own view and they hold in common the points of
-        the overlap that both kept. Those come first, in the same order in both clouds; a view
-        with fewer visible points than ``points`` is padded by repeating its own points.
+        second as far (drawn anew) within ``view_angle`` degrees of it; with ``view_partner``
+        "whole", the second cloud is of the whole surface instead (what the engine pairs a
+        view with: the whole reference). Every pool point gets one random rank; each cloud is
+        the ``points`` best-ranked points its camera sees, so each is a uniform subsample of
+        its own view and they hold in common the points of the overlap that both kept. Those
+        come first, in the same order in both clouds; a view with fewer visible points than
+        ``points`` is padded by repeating its own points.
         """
         pool = self.pools[name]
         count = self.config.points
@@ -126,7 +131,10 @@ class TrainingClouds:
         kept = []
         for direction in (first, second):
             camera = centroid + direction * rng.uniform(*CAMERA_DISTANCE) * reach
-            seen = np.flatnonzero(visible_points(pool, camera))
+            if direction is second and self.config.view_partner == "whole":
+                seen = np.arange(len(pool))
+            else:
+                seen = np.flatnonzero(visible_points(pool, camera))
             kept.append(seen[np.argsort(ranks[seen], kind="stable")[:count]])
         both = np.intersect1d(kept[0], kept[1])
         both = both[rng.permutation(len(both))]
