@@ -7,10 +7,14 @@
 
 Every model meets the same cases: ``sensor`` (what a depth camera sees, ``evaluation.cases``)
 and ``so3`` (a full cloud in a uniform pose, so that a regression on full clouds shows), of the
-seen and of the unseen objects. Each object's reference is its mesh sampled to 2,048 points
-with seed 0 (as a registration samples it), mapped whole by the model. Each case's observation
-is subsampled to the engine's ``network_points`` with the same draw for every model. Given
-the right part, per model, family and object set:
+seen and of the unseen objects; and ``view-pairs``, two cameras' views of a part made as
+single-view training makes them (``training.data``), the second turned by a uniform rotation
+and paired with the first: did a model learn what single-view training asks of it?
+
+Each object's reference is its mesh sampled to 2,048 points with seed 0 (as a registration
+samples it), mapped whole by the model (for ``view-pairs``: the first view, mapped as a cloud).
+Each case's observation is subsampled to the engine's ``network_points`` with the same draw
+for every model. Given the right part, per model, family and object set:
 
 - ``quality``: correspondence quality of the mapped pairs, the share of observed points whose
   2-D nearest reference point lies within 0.05 x scale of the true point
@@ -47,7 +51,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from evaluation.cases import Case, make_cases
+from evaluation.cases import Case, make_cases, uniform_rotations
 from evaluation.metrics import PRECISE_ADD_S, SUCCESS_ADD_S, add_s, diameter, geodesic_deg
 from service.engine.alignment import to_model_frame
 from service.engine.classifier import LinearClassifier, classifier_input
@@ -60,10 +64,13 @@ from service.engine.registration import ransac
 from service.engine.sampling import sample_surface_faces
 from service.engine.views import directions, render
 from service.settings import MODELS_DIR, EngineSettings
+from training.data import DataConfig, TrainingClouds
 from training.objects import load_manifest, load_object_meshes
 
 FAMILIES = ("sensor", "so3")
+PAIRS = "view-pairs"  # two cameras' views, as single-view training makes them
 REFERENCE_POINTS = 2048  # a registration's sample of a mesh
+PAIRS_EPOCH = 10_000  # the view pairs' pool: an epoch of the training stream no run reaches
 TOP = 5
 
 
@@ -126,18 +133,23 @@ class Study:
         observed = case.points[subsample(case.points, settings.network_points, rng)]
         observed = observed.astype(np.float64)
         mapped = self.engine.map(observed)
-        paired = mapped_pairs(mapped, self.trees[part.name])
+        if case.family == PAIRS:  # the reference is the first camera's view
+            reference = case.params["reference"]
+            tree = cKDTree(self.engine.map(reference))
+        else:  # the whole reference
+            reference, tree = part.points, self.trees[part.name]
+        paired = mapped_pairs(mapped, tree)
         truth = to_model_frame(observed, case.rotation, case.translation)
         record = {
             "object": part.name,
             "split": part.split,
             "family": case.family,
             "points": len(case.points),
-            "quality": correspondence_quality(truth, part.points, paired, part.scale),
+            "quality": correspondence_quality(truth, reference, paired, part.scale),
         }
         threshold = settings.ransac_threshold * part.scale
         rotation, translation, inliers = ransac(
-            part.points[paired], observed, threshold, settings.ransac_iterations, rng
+            reference[paired], observed, threshold, settings.ransac_iterations, rng
         )
         record["mapped_add_s"] = add_s(
             part.points, rotation, translation, case.rotation, case.translation, part.diameter
@@ -146,9 +158,9 @@ class Study:
         record["mapped_precise"] = record["mapped_add_s"] < PRECISE_ADD_S
         record["mapped_rotation_deg"] = geodesic_deg(rotation, case.rotation)
         record["mapped_inliers"] = float(inliers.mean())
-        drawn = rng.integers(0, len(part.points), size=len(observed))
+        drawn = rng.integers(0, len(reference), size=len(observed))
         rotation, translation, _ = ransac(
-            part.points[drawn], observed, threshold, settings.ransac_iterations, rng
+            reference[drawn], observed, threshold, settings.ransac_iterations, rng
         )
         error = add_s(part.points, rotation, translation, case.rotation, case.translation, 1.0)
         record["random_pairs_ok"] = error / part.diameter < SUCCESS_ADD_S
@@ -163,6 +175,8 @@ class Study:
             record["view_mapped_ok"] = error / part.diameter < SUCCESS_ADD_S
             record["view_mapped_precise"] = error / part.diameter < PRECISE_ADD_S
             record["view_mapped_rotation_deg"] = geodesic_deg(rotation, case.rotation)
+        if case.family == PAIRS:
+            return record
         scores = self.classifier.scores(grid(mapped))
         right = self.classifier.labels.index(part.name)
         rank = int((scores > scores[right]).sum())
@@ -176,8 +190,8 @@ class Study:
                     hypotheses=sources,
                     viewpoint=None if viewpoint is None else np.asarray(viewpoint),
                 )
-                ok = answer.rotation is not None and answer.label == part.name
-                if ok:
+                error = np.inf
+                if answer.rotation is not None and answer.label == part.name:
                     error = add_s(
                         part.points,
                         answer.rotation,
@@ -186,8 +200,8 @@ class Study:
                         case.translation,
                         part.diameter,
                     )
-                    ok = error < SUCCESS_ADD_S
-                record[f"engine_{kind}_ok"] = bool(ok)
+                record[f"engine_{kind}_ok"] = bool(error < SUCCESS_ADD_S)
+                record[f"engine_{kind}_precise"] = bool(error < PRECISE_ADD_S)
                 record[f"engine_{kind}_source"] = answer.hypothesis
         return record
 
@@ -205,9 +219,9 @@ def summarise(records: list[dict]) -> dict:
         "random_pairs_success": mean("random_pairs_ok"),
         "mapped_rotation_median_deg": float(np.median([r["mapped_rotation_deg"] for r in records])),
         "mapped_inliers_median": float(np.median([r["mapped_inliers"] for r in records])),
-        "top1": mean("top1"),
-        f"top{TOP}": mean("topk"),
     }
+    if "top1" in records[0]:
+        summary["top1"], summary[f"top{TOP}"] = mean("top1"), mean("topk")
     if "view_quality" in records[0]:
         summary["view_quality"] = mean("view_quality")
         summary["view_mapped_success"] = mean("view_mapped_ok")
@@ -220,6 +234,8 @@ def summarise(records: list[dict]) -> dict:
         without_ok = np.array([r["engine_without_ok"] for r in records])
         summary["engine_success_with_mapped"] = float(with_ok.mean())
         summary["engine_success_without_mapped"] = float(without_ok.mean())
+        summary["engine_precise_with_mapped"] = mean("engine_with_precise")
+        summary["engine_precise_without_mapped"] = mean("engine_without_precise")
         summary["engine_mapped_won"] = float(
             np.mean([r["engine_with_source"] == "mapped" for r in records])
         )
@@ -243,6 +259,8 @@ COLUMNS = (
     (f"top{TOP}", f"top-{TOP}", "{:.1%}"),
     ("engine_success_without_mapped", "engine w/o mapped", "{:.1%}"),
     ("engine_success_with_mapped", "engine with", "{:.1%}"),
+    ("engine_precise_without_mapped", "precise w/o", "{:.1%}"),
+    ("engine_precise_with_mapped", "precise with", "{:.1%}"),
     ("engine_mapped_won", "mapped won", "{:.1%}"),
     ("engine_rescued_by_mapped", "rescued", "{:d}"),
     ("engine_lost_with_mapped", "lost", "{:d}"),
@@ -263,6 +281,26 @@ def table(report: dict) -> str:
             cells = [fmt.format(summary[key]) if key in summary else "" for key, _, fmt in shown]
             lines.append(f"| {model} | {family} | {split} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def view_pair_cases(parts: dict[str, Part], seed: int, count: int) -> list[Case]:
+    """``count`` pairs of views of each part made as single-view training makes them
+    (``training.data.TrainingClouds.view_pair``, a pool of an epoch no run trains on): the
+    second view turned by a uniform rotation is the observation, the first is the reference
+    (``params["reference"]``, the object's frame)."""
+    config = DataConfig(single_views=1.0)
+    clouds = TrainingClouds({name: part.mesh for name, part in parts.items()}, config, seed)
+    clouds.start_epoch(PAIRS_EPOCH)
+    cases = []
+    for name in parts:
+        rng = np.random.default_rng([seed, zlib.crc32(name.encode())])
+        for index in range(count):
+            reference, view, _ = clouds.view_pair(name, rng)
+            rotation = uniform_rotations(1, rng)[0]
+            params = {"index": index, "reference": reference.astype(np.float64)}
+            scene = (view @ rotation.T).astype(np.float32)
+            cases.append(Case(name, PAIRS, scene, rotation, np.zeros(3), params))
+    return cases
 
 
 def named_model(text: str) -> tuple[str, Path]:
@@ -286,6 +324,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--seed", type=int, default=11)
     parser.add_argument("--engine", action="store_true", help="also the engine, with and without")
     parser.add_argument("--json", type=Path, default=None, help="write the figures here")
+    parser.add_argument("--records", type=Path, default=None, help="and every case's record here")
     args = parser.parse_args(argv)
     models = dict(args.model or [("shipped", MODELS_DIR / "dpc_mn.onnx")])
 
@@ -295,7 +334,7 @@ def main(argv: list[str] | None = None) -> dict:
         specs = load_manifest(args.manifest, split=split)[: args.objects]
         for name, mesh in load_object_meshes(specs).items():
             parts[name] = Part(name, mesh, split)
-    cases = []
+    cases = view_pair_cases(parts, args.seed, args.cases)
     for family in FAMILIES:
         meshes = {name: part.mesh for name, part in parts.items()}
         scales = {name: part.scale for name, part in parts.items()}
@@ -319,7 +358,7 @@ def main(argv: list[str] | None = None) -> dict:
         records = [study.record(case, args.seed) for case in cases]
         records_of[model_name] = records
         groups = {}
-        for family in FAMILIES:
+        for family in (*FAMILIES, PAIRS):
             for split in ("seen", "unseen"):
                 chosen = [r for r in records if r["family"] == family and r["split"] == split]
                 if chosen:
@@ -330,8 +369,9 @@ def main(argv: list[str] | None = None) -> dict:
     print()
     print(table(report))
     if args.json:
-        report["records"] = records_of
         args.json.write_text(json.dumps(report, indent=1) + "\n")
+    if args.records:
+        args.records.write_text(json.dumps(records_of) + "\n")
     return report
 
 
