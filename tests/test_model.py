@@ -54,6 +54,20 @@ def test_pose_loss_is_the_mean_distance():
     assert torch.isclose(pose_loss(anchor, rotated), torch.tensor(5.0 / 4))
 
 
+def test_pose_loss_over_the_shared_rows_is_their_mean_distance():
+    """With a mask, eq. (2) averages over the rows both clouds hold, in every cloud of the batch:
+    for the same rows in each cloud it is the mean over those rows."""
+    anchor = torch.zeros(2, 4, 2)
+    rotated = torch.tensor([[[3.0, 4.0], [0.0, 1.0], [9.0, 9.0], [9.0, 9.0]]]).repeat(2, 1, 1)
+    first_two = torch.tensor([True, True, False, False]).repeat(2, 1)
+    assert torch.isclose(pose_loss(anchor, rotated, first_two), torch.tensor(3.0))
+    assert torch.isclose(
+        pose_loss(anchor, rotated, first_two), pose_loss(anchor[:, :2], rotated[:, :2])
+    )
+    uneven = torch.tensor([[True, False, False, False], [True, True, False, False]])
+    assert torch.isclose(pose_loss(anchor, rotated, uneven), torch.tensor((5 + 5 + 1) / 3))
+
+
 def test_total_loss_weighs_the_pose_term_by_lambda():
     anchor = torch.zeros(1, 4, 2)
     rotated = torch.ones(1, 4, 2)

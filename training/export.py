@@ -1,6 +1,7 @@
 """Export a trained network to ONNX and build the gallery the service ships with.
 
     python -m training.export --checkpoint runs/shipped/checkpoint.pt --out models
+    python -m training.export --checkpoint runs/x/checkpoint.pt --out runs/x/export --onnx-only
 
 Writes ``dpc_mn.onnx`` (dynamic number of points, opset 17, its input convention
 in the metadata), checks it against PyTorch with onnxruntime on clouds of
@@ -8,6 +9,8 @@ several sizes, builds ``gallery.npz`` from the seen objects (each reference is t
 mesh sampled with seed 0, mapped by the exported model through the service's own
 engine, with the grids of augmented views its classifier is fitted on), and
 writes ``manifest.json``: file hashes, training config, date and code version.
+``--onnx-only`` writes and checks ``dpc_mn.onnx`` alone (no gallery, no manifest): enough for
+a study that registers its own references (``evaluation.views_mapping``).
 """
 
 from __future__ import annotations
@@ -163,6 +166,11 @@ def main(argv: list[str] | None = None) -> None:
         action="store_true",
         help="rebuild gallery.npz for the model already in --out (no checkpoint needed)",
     )
+    parser.add_argument(
+        "--onnx-only",
+        action="store_true",
+        help="write and check dpc_mn.onnx alone: no gallery, no manifest",
+    )
     args = parser.parse_args(argv)
     if args.gallery_only:
         gallery_only(args.out, args.manifest, args.split)
@@ -177,6 +185,8 @@ def main(argv: list[str] | None = None) -> None:
     )
     parity = check_parity(model, onnx_path)
     print(f"ONNX export {onnx_path}: matches PyTorch within {parity:.2e}")
+    if args.onnx_only:
+        return
 
     mapper = Mapper(onnx_path, use_cuda=False)
     gallery = write_gallery(args.out, mapper, args.manifest, args.split)

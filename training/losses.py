@@ -21,9 +21,18 @@ def mapping_loss(
     return torch.clamp(margin + near - far, min=0).mean()
 
 
-def pose_loss(anchor: torch.Tensor, rotated: torch.Tensor) -> torch.Tensor:
-    """Eq. (2), L_p: the same points in another pose map to the same place, ``mean |M_a - M_i|``."""
-    return (anchor - rotated).norm(dim=-1).mean()
+def pose_loss(
+    anchor: torch.Tensor, rotated: torch.Tensor, shared: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Eq. (2), L_p: the same points in another pose map to the same place, ``mean |M_a - M_i|``.
+
+    ``shared`` (B, N) bool marks the rows that are the same point in both clouds; the mean
+    runs over those alone (default: every row).
+    """
+    distance = (anchor - rotated).norm(dim=-1)
+    if shared is None:
+        return distance.mean()
+    return (distance * shared).sum() / shared.sum().clamp(min=1)
 
 
 def total_loss(
@@ -33,12 +42,12 @@ def total_loss(
     rotated: torch.Tensor,
     margin: float,
     weight: float,
-    anchor_shared: torch.Tensor | None = None,
+    shared: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Eq. (3), ``f = L_m + lambda * L_p``; returns (f, L_m, L_p).
 
-    ``anchor_shared`` are the anchor's rows that ``rotated`` holds too (default: all).
+    ``shared`` (B, N) bool: the rows ``rotated`` holds in common with the anchor (default: all).
     """
     l_m = mapping_loss(anchor, positive, negative, margin)
-    l_p = pose_loss(anchor if anchor_shared is None else anchor_shared, rotated)
+    l_p = pose_loss(anchor, rotated, shared)
     return l_m + weight * l_p, l_m, l_p

@@ -214,7 +214,8 @@ def train(config: TrainConfig, resume: bool = False) -> Path:
         for index, names in progress:
             share = ranks.share(len(names))
             seeds = [[config.seed, epoch, index, k] for k in range(share.start, share.stop)]
-            anchor, positive, rotated = (
+            # shared: the rows that are the same surface point in anchor and rotated cloud
+            anchor, positive, rotated, shared = (
                 torch.from_numpy(part).to(device)
                 for part in clouds.batch(list(names[share]), seeds)
             )
@@ -223,10 +224,8 @@ def train(config: TrainConfig, resume: bool = False) -> Path:
             shuffle = torch.Generator().manual_seed(config.seed * 1_000_003 + epoch * 1009 + index)
             m_n = m_a[:, torch.randperm(m_a.shape[1], generator=shuffle).to(device)]  # shuffled
             # anchor: the same permutation on every rank, and after a resume
-            shared = clouds.shared_rows  # eq. (2) compares the points both clouds hold
-            loss, l_m, l_p = total_loss(
-                m_a, m_p, m_n, m_i[:, :shared], config.margin, config.weight, m_a[:, :shared]
-            )
+            # eq. (2) compares the points both clouds hold
+            loss, l_m, l_p = total_loss(m_a, m_p, m_n, m_i, config.margin, config.weight, shared)
             weight = ranks.weight(len(names))  # this share's part of the batch's mean
             optimizer.zero_grad()
             (loss * weight).backward()
