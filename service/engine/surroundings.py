@@ -37,6 +37,7 @@ AROUND = 9  # ... in at least this many of 12 directions around it
 PLANE_ITERATIONS = 96
 PLANE_SCORED = 256  # points the candidate planes are scored on
 PLANE_SPACINGS = 1.5  # plane inliers lie within this many spacings of it
+THICKNESS = 4.0  # a table: within this many standard deviations of its fitted plane
 LINK_SPACINGS = 3.0  # neighbours closer than this many spacings are one group
 STRAY_SHARE = 0.02  # a group of less than this share of the points ...
 STRAY_GAP = 10.0  # ... this many spacings from any larger group is stray
@@ -48,13 +49,6 @@ class Observation:
     set_aside: int  # points of the original cloud taken to be support, strays or clutter
     support: np.ndarray | None  # (4,) the table's plane n . x = d, if one was found
     spacing: float  # the median distance between neighbouring points of a 1,024-point sample
-
-
-def spacing(points: np.ndarray, tree: cKDTree, rng: np.random.Generator) -> float:
-    """The median distance from a point to its nearest neighbour (on a sample)."""
-    sample = points[rng.choice(len(points), size=min(256, len(points)), replace=False)]
-    distance, _ = tree.query(sample, k=2)
-    return float(np.median(distance[:, 1]))
 
 
 def plane_candidate(
@@ -151,41 +145,65 @@ def set_aside_surroundings(
     plane if there is one; where a plane was set aside, also the reading that
     keeps it (in case it is the part's own face). The engine keeps the one the part fits best.
 
-    The decisions are made on a sample of ``MAX_POINTS``; then every point inside the part's
-    bounding sphere (and above the table) is the part's."""
+    The plane is found on a sample of ``MAX_POINTS``; what lies off it is judged on a sample of
+    its own, so that a part small in the camera's view (a twentieth of the points, the rest
+    table) is judged on as many points as a part that fills it. Then every point inside the
+    part's bounding sphere (and above the table) is the part's."""
     sample = points[subsample(points, MAX_POINTS, rng)]
-    distance, _ = cKDTree(sample).query(sample[: min(256, len(sample))], k=2)
-    step = float(np.median(distance[:, 1]))
-    link = LINK_SPACINGS * step
-    support, part = None, np.ones(len(sample), dtype=bool)
+    step = median_spacing(sample)
+    everything = the_part(sample, groups(sample, LINK_SPACINGS * step), step)
+    whole = _reading(points, sample, everything, None, step)
     found = plane_candidate(sample, step, rng)
-    if found is not None:
-        plane, on_plane = found
-        rest = sample[~on_plane]
-        if len(rest) >= 20:
-            main = rest[the_part(rest, groups(rest, link), step)]
-            if is_support(plane, sample[on_plane], main, viewpoint):
-                height = np.median(main @ plane[:3] - plane[3])
-                support = plane * np.sign(height)  # its normal towards the part
-                part = ~on_plane & (sample @ support[:3] - support[3] > PLANE_SPACINGS * step)
-    if support is None:
-        return [_reading(points, sample, the_part(sample, groups(sample, link), step), None, step)]
-    chosen = np.zeros(len(sample), dtype=bool)
-    chosen[np.flatnonzero(part)[the_part(sample[part], groups(sample[part], link), step)]] = True
-    everything = the_part(sample, groups(sample, link), step)
-    return [
-        _reading(points, sample, chosen, support, step),
-        _reading(points, sample, everything, None, step),  # in case the plane is the part's
-    ]
+    if found is None:
+        return [whole]
+    plane, on_plane = found
+    plane, thickness = fitted(sample[on_plane], plane, PLANE_SPACINGS * step)
+    rest = points[np.abs(points @ plane[:3] - plane[3]) >= thickness]
+    if len(rest) < 20:
+        return [whole]
+    kept = subsample(rest, MAX_POINTS, rng)
+    # the part is seen as densely as the table around it: its spacing in its own sample, from
+    # the sample's (the median of the rest's would be the strays' where they outnumber it)
+    rest_step = step * np.sqrt(MAX_POINTS * len(rest) / (len(kept) * len(points)))
+    rest = rest[kept]
+    main = rest[the_part(rest, groups(rest, LINK_SPACINGS * rest_step), rest_step)]
+    if not is_support(plane, sample[on_plane], main, viewpoint):
+        return [whole]
+    support = plane * np.sign(np.median(main @ plane[:3] - plane[3]))  # normal towards the part
+    above = np.flatnonzero(rest @ support[:3] - support[3] > thickness)
+    chosen = np.zeros(len(rest), dtype=bool)
+    link = LINK_SPACINGS * rest_step
+    chosen[above[the_part(rest[above], groups(rest[above], link), rest_step)]] = True
+    part = _reading(points, rest, chosen, support, step, thickness)
+    return [part, whole]  # whole: in case the plane is the part's own face
 
 
-def _reading(points, sample, chosen, support, step) -> Observation:
+def fitted(on_plane: np.ndarray, plane: np.ndarray, most: float) -> tuple[np.ndarray, float]:
+    """The plane fitted to its RANSAC inliers by least squares, and how thick the table is:
+    ``THICKNESS`` robust standard deviations of their distances, at most ``most``. The
+    RANSAC plane's tilt and tolerance would cut the foot of a thin part resting on it."""
+    centre = on_plane.mean(axis=0)
+    normal = np.linalg.svd(on_plane - centre, full_matrices=False)[2][2]
+    normal = normal * np.sign(normal @ plane[:3])
+    residual = np.abs((on_plane - centre) @ normal)
+    thickness = min(most, THICKNESS * 1.4826 * float(np.median(residual)))
+    return np.append(normal, normal @ centre), thickness
+
+
+def median_spacing(points: np.ndarray) -> float:
+    """The median distance from a point to its nearest neighbour, over the first 256 points
+    (``points`` is a random sample)."""
+    distance, _ = cKDTree(points).query(points[: min(256, len(points))], k=2)
+    return float(np.median(distance[:, 1]))
+
+
+def _reading(points, sample, chosen, support, step, thickness=0.0) -> Observation:
     """Every point of ``points`` within the bounding sphere of the ``chosen`` sample points,
-    and above the support plane if there is one."""
+    and more than ``thickness`` above the support plane if there is one."""
     kept = sample[chosen]
     centre, reach = kept.mean(axis=0), radius(kept) + LINK_SPACINGS * step
     inside = np.linalg.norm(points - centre, axis=1) <= reach
     if support is not None:
-        inside &= points @ support[:3] - support[3] > PLANE_SPACINGS * step
+        inside &= points @ support[:3] - support[3] > thickness
     observed = points[inside]
     return Observation(observed, len(points) - len(observed), support, step)
