@@ -50,7 +50,7 @@ import numpy as np
 from tqdm import tqdm
 
 from evaluation.cases import ANSWER_FAMILIES, Case, make_cases, object_scale
-from evaluation.metrics import diameter
+from evaluation.metrics import ADD_S_POINTS, diameter
 from evaluation.records import NO_ANSWER, Answer, Truth, case_record
 from service.engine.engine import Engine
 from service.engine.sampling import sample_surface
@@ -494,6 +494,9 @@ def evaluate(
     every = full_specs + side_specs + sensor_side_specs + foreign_specs + symmetric_specs
     meshes = load_object_meshes({s.name: s for s in every}.values())
     truths |= foreign_truths({s.name: meshes[s.name] for s in foreign_specs})
+    for name, mesh in meshes.items():  # ADD-S on a dense sample of the mesh
+        if name in truths:
+            truths[name].model_points = sample_surface(mesh, ADD_S_POINTS, 1).astype(np.float64)
     full_meshes = {s.name: meshes[s.name] for s in full_specs}
     side_meshes = {s.name: meshes[s.name] for s in side_specs}
     # the noise study: the first side-by-side objects, seen and unseen in turn

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from evaluation.cases import NO_MATCH, Case
 from evaluation.metrics import (
@@ -48,6 +49,16 @@ class Truth:
     scale: float
     diameter: float
     split: str
+    model_points: np.ndarray | None = None  # a dense sample of the mesh for ADD-S (else points)
+    _tree: cKDTree | None = field(default=None, repr=False)
+
+    def add_s(self, rotation, translation, rotation_true, translation_true) -> float:
+        """ADD-S of a pose of this object (``evaluation.metrics.add_s``) on ``model_points``."""
+        points = self.points if self.model_points is None else self.model_points
+        if self._tree is None:
+            self._tree = cKDTree(np.asarray(points, np.float64))
+        pose, truth = (rotation, translation), (rotation_true, translation_true)
+        return add_s(points, *pose, *truth, self.diameter, self._tree)
 
 
 @dataclass
@@ -144,13 +155,8 @@ def case_record(
         translation = np.asarray(answer.translation, np.float64) / factor
         if truth is not None:
             record["rot_err_deg"] = geodesic_deg(answer.rotation, case.rotation)
-            record["add_s"] = add_s(
-                truth.points,
-                answer.rotation,
-                translation,
-                case.rotation,
-                true_translation,
-                truth.diameter,
+            record["add_s"] = truth.add_s(
+                answer.rotation, translation, case.rotation, true_translation
             )
         named = truths.get(answer.label)
         if named is not None:

@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from evaluation.metrics import (
+    ADD_S_POINTS,
     PRECISE_ADD_S,
     add_s,
     alignment_error_normalized,
@@ -23,6 +25,7 @@ from evaluation.metrics import (
     summarize,
     symmetric_spread,
 )
+from evaluation.records import Truth
 from service.engine.sampling import sample_surface
 
 
@@ -67,6 +70,30 @@ def test_add_s_forgives_symmetry_but_not_a_wrong_rotation():
     # a half turn about an axis of the box is one of its symmetries
     flip = Rotation.from_euler("z", 180, degrees=True).as_matrix()
     assert add_s(box, flip, np.zeros(3), np.eye(3), np.zeros(3), diameter(box)) < PRECISE_ADD_S
+
+
+def test_add_s_of_a_symmetric_answer_falls_with_the_model_points_density():
+    # a gear-like part: a 10-fold ring of teeth; a turn by one tooth is a symmetry
+    teeth = [
+        trimesh.creation.box((0.2, 0.1, 0.3)).apply_translation((1.0, 0, 0)) for _ in range(10)
+    ]
+    for k, tooth in enumerate(teeth):
+        tooth.apply_transform(trimesh.transformations.rotation_matrix(k * np.pi / 5, (0, 0, 1)))
+    gear = trimesh.util.concatenate([trimesh.creation.cylinder(0.9, 0.3, 40), *teeth])
+    one_tooth = Rotation.from_euler("z", 36, degrees=True).as_matrix()
+    pose = Rotation.random(random_state=4).as_matrix(), np.array([0.5, -1.0, 2.0])
+    answer = pose[0] @ one_tooth, pose[1]
+    errors = []
+    for count in (2048, ADD_S_POINTS):
+        points = sample_surface(gear, count, 1)
+        error = add_s(points, *answer, *pose, diameter(points))
+        tree = cKDTree(points)  # built once per object, the same figure
+        assert add_s(points, *answer, *pose, diameter(points), tree) == pytest.approx(error)
+        truth = Truth(points, 1.0, diameter(points), "seen", model_points=points)
+        assert truth.add_s(*answer, *pose) == pytest.approx(error)
+        errors.append(error)
+    sparse, dense = errors
+    assert dense < sparse / 2 and dense < PRECISE_ADD_S / 2
 
 
 def test_alignment_error_of_identical_and_offset_clouds():

@@ -110,3 +110,27 @@ def test_targets_say_met_or_missed():
     assert not rows["sensor, without viewpoint: success ≥ 85%"]["met"]  # no such answers
     lines = "\n".join(readme_lines(answers_report(records)))
     assert "| 16 | false accepts on junk ≤ 0% | 50.0 % | MISSED |" in lines
+
+
+ROTATION = (
+    "so3/noisy/paper-poses: rotation error < 2° for ≥ 95% of the answers on parts without a"
+    " symmetry"
+)
+
+
+def test_precise_pose_targets_leave_out_the_parts_an_answer_showed_symmetric():
+    records = [
+        record("so3", True, True, object="bracket", set=s, add_s=0.003, rot_err_deg=0.5)
+        for s in ("seen", "unseen")
+    ]
+    # a gear answered a tooth away: its ADD-S is tiny, its rotation error large
+    records += [record("so3", True, True, object="gear", add_s=0.006, rot_err_deg=36.0)]
+    rows = {row["target"]: row for row in answer_targets(records, [])}
+    rotation = rows[ROTATION]
+    assert rotation["met"] and rotation["figure"].startswith("seen 100.0 % / unseen 100.0 %")
+    assert "1 parts left out as symmetric" in rotation["figure"] and "gear" in rotation["figure"]
+    assert rows["so3: precise ≥ 95%"]["met"]  # so3: every answer under 0.02
+    records += [record("so3", True, True, object="bracket", add_s=0.03, rot_err_deg=9.0)] * 2
+    rows = {row["target"]: row for row in answer_targets(records, [])}
+    rotation = rows[ROTATION]
+    assert not rotation["met"] and not rows["so3: precise ≥ 95%"]["met"]
