@@ -39,11 +39,14 @@ class EngineSettings(BaseModel):
     hypotheses: tuple[str, ...] = ("views", "principal-axes", "mapped")
     views: int = Field(100, ge=4)  # single-camera views rendered per reference
     view_candidates: int = Field(6, ge=1)  # parts the nearest rendered views propose
-    screened: int = Field(32, ge=1)  # a candidate's hypotheses kept by the quick first look
+    # a candidate's hypotheses kept by the quick first look; 12 and 64 verify points and 12 ICP
+    # iterations against 32, 96 and 20: sensor views 62 -> 48 ms (median, quiet 2 cores), every
+    # family's success within one case (docs/operations.md, "Speed against accuracy")
+    screened: int = Field(12, ge=1)
     ransac_iterations: int = Field(200, ge=1)  # at most; fewer once an all-inlier draw is sure
     ransac_threshold: float = Field(0.08, gt=0)  # inlier distance, share of the reference's scale
     tolerance: float = Field(0.04, gt=0)  # fit and coverage distance, share of the scale
-    verify_points: int = Field(96, ge=16)  # observed points in the first, cheap check
+    verify_points: int = Field(64, ge=16)  # observed points in the first, cheap check
     coverage_points: int = Field(64, ge=16)  # expected-visible points in the cheap check
     excellent: float = Field(0.9, gt=0, le=1)  # fit x coverage that ends the search early
     # the confidence of a "match" (a request's min_confidence overrides); default: the
@@ -51,7 +54,7 @@ class EngineSettings(BaseModel):
     accept: float | None = Field(None, ge=0, le=1)
     reject_below: float = Field(0.2, ge=0, le=1)  # below it "no_match", else "uncertain"
     refine_best: int = Field(4, ge=1)  # hypotheses refined with ICP (at most 2 a part)
-    icp_iterations: int = Field(20, ge=1)
+    icp_iterations: int = Field(12, ge=1)
     icp_points: int = Field(384, ge=16)
     view_grids: int = Field(32, ge=1)  # augmented full views per reference for eq. (4)
     partial_views: float = Field(0.0, ge=0, le=1)  # share of them seen by a single camera

@@ -1,0 +1,196 @@
+"""The engine's search budget against its accuracy: the same cases under several settings.
+
+    python -m benchmarks.engine_settings \\
+        --variant before=screened:32,verify_points:96,icp_iterations:20 \\
+        --variant faster=screened:8,icp_iterations:8 --json out.json
+
+Each variant is the default ``EngineSettings`` with the given fields changed; ``default`` (the
+shipped settings) always runs first. Every variant answers the same cases of the evaluation's
+families (``--families``; default the full clouds, single views, table scenes, foreign parts and
+junk) on the evaluation's gallery (the shipped references, the unseen parts registered at run
+time, the foreign parts kept out: ``evaluation.evaluate_mapping.prepare_engine``), in this
+process, one case at a time, told the viewpoint where the case has one. The references are
+computed once: the settings changed here only steer the search (which hypotheses are verified,
+screened and refined), never what a registration stores. Per variant and family it prints the
+success (right label, ADD-S < 0.1), the precise share (< 0.02), the share answered ``"match"``
+and right, the false accepts (``"match"`` on a foreign part or junk), the median latency and the
+median of each step. The confidence is the shipped calibration's, fitted under the default
+settings: a variant that moves the fit and coverage moves it too (refit with
+``python -m evaluation.calibrate`` before shipping other settings).
+
+Needs the ``eval`` and ``train`` extras (pybullet's meshes). Latency figures are only worth
+comparing within one run, on a quiet machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from evaluation.cases import make_cases
+from evaluation.evaluate import FOREIGN, build_truths, case_viewpoint, foreign_truths
+from evaluation.evaluate_mapping import prepare_engine
+from evaluation.metrics import ADD_S_POINTS, PRECISE_ADD_S
+from evaluation.records import Answer, Truth, case_record
+from service.engine.confidence import Calibration
+from service.engine.engine import Engine
+from service.engine.sampling import sample_surface
+from service.settings import MODELS_DIR, EngineSettings
+from training.objects import load_manifest, load_object_meshes
+
+FAMILIES = ("so3", "noisy", "paper-poses", "partial", "sensor", "table", "foreign", "junk")
+PER_OBJECT = {"paper-poses": 4, "so3": 2, "noisy": 2, "partial": 3, "sensor": 4, "table": 2}
+FOREIGN_CASES, JUNK_CASES = 3, 5  # as the evaluation's full plan
+
+
+def parse_variant(text: str) -> tuple[str, dict]:
+    """``name=field:value,field:value`` -> (name, {field: value}); values are JSON."""
+    name, _, fields = text.partition("=")
+    if not name or not fields:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected name=field:value[,field:value]")
+    changes = {}
+    for item in fields.split(","):
+        field, _, value = item.partition(":")
+        if field not in EngineSettings.model_fields:
+            raise argparse.ArgumentTypeError(f"{field!r} is not an engine setting")
+        try:
+            changes[field] = json.loads(value)
+        except json.JSONDecodeError as error:
+            raise argparse.ArgumentTypeError(f"{item!r}: the value is not JSON") from error
+    EngineSettings(**changes)  # a bad value fails here, naming the field
+    return name, changes
+
+
+def build_cases(families, meshes, foreign_meshes, truths, seed):
+    scales = {name: truth.scale for name, truth in truths.items()}
+    registered = {name: scales[name] for name in meshes}
+    cases = []
+    for family in families:
+        if family == "foreign":
+            cases += make_cases(family, foreign_meshes, scales, 2048, seed, FOREIGN_CASES)
+        elif family == "junk":
+            cases += make_cases(family, {}, registered, 2048, seed, JUNK_CASES)
+        else:
+            cases += make_cases(family, meshes, scales, 2048, seed, PER_OBJECT[family])
+    return cases
+
+
+def run_variant(engine: Engine, cases, truths: dict[str, Truth]) -> list[dict]:
+    candidates = engine.names()
+    records = []
+    for case in cases:
+        viewpoint = case_viewpoint("engine", case)
+        began = time.perf_counter()
+        answer = engine.align(case.points, candidates=candidates, viewpoint=viewpoint)
+        latency = (time.perf_counter() - began) * 1e3
+        record = case_record(
+            case, truths, Answer.of_alignment(answer), latency, viewpoint is not None
+        )
+        records.append(record)
+    return records
+
+
+def summary(records: list[dict]) -> dict:
+    steps = sorted({step for r in records for step in r["timings_ms"]})
+    precise = [bool(r["label_ok"] and (r["add_s"] or 1.0) < PRECISE_ADD_S) for r in records]
+    return {
+        "cases": len(records),
+        "success": float(np.mean([r["success"] for r in records])),
+        "precise": float(np.mean(precise)),
+        "match_and_right": float(np.mean([r["accepted"] and r["success"] for r in records])),
+        "false_accepts": int(sum(r["accepted"] and not r["success"] for r in records)),
+        "latency_ms_median": float(np.median([r["latency_ms"] for r in records])),
+        "steps_ms": {
+            step: float(np.median([r["timings_ms"].get(step, 0.0) for r in records]))
+            for step in steps
+        },
+    }
+
+
+def print_table(report: dict) -> None:
+    print(
+        f"{'variant':12s} {'family':12s} {'cases':>5s} {'success':>8s} {'precise':>8s}"
+        f" {'match+right':>11s} {'false acc.':>10s} {'median ms':>9s}  steps (median ms)"
+    )
+    for name, families in report["variants"].items():
+        for family, s in families.items():
+            slow = sorted(s["steps_ms"].items(), key=lambda kv: -kv[1])
+            steps = ", ".join(f"{k} {v:.1f}" for k, v in slow if k != "total")
+            print(
+                f"{name:12s} {family:12s} {s['cases']:5d} {s['success']:8.1%} {s['precise']:8.1%}"
+                f" {s['match_and_right']:11.1%} {s['false_accepts']:10d}"
+                f" {s['latency_ms_median']:9.1f}  {steps}"
+            )
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.engine_settings", description=__doc__.split("\n")[0]
+    )
+    parser.add_argument(
+        "--variant",
+        type=parse_variant,
+        action="append",
+        default=[],
+        help="name=field:value[,field:value] (repeatable)",
+    )
+    parser.add_argument("--families", default=",".join(FAMILIES), help="comma-separated")
+    parser.add_argument(
+        "--objects", type=int, default=None, help="every n-th object only (seen and unseen alike)"
+    )
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--model", type=Path, default=MODELS_DIR / "dpc_mn.onnx")
+    parser.add_argument("--gallery", type=Path, default=MODELS_DIR / "gallery.npz")
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args(argv)
+    args.families = [f for f in args.families.split(",") if f]
+    unknown = [f for f in args.families if f not in FAMILIES]
+    if unknown:
+        parser.error(f"unknown families {unknown}; pick from {FAMILIES}")
+    return args
+
+
+def main(argv: list[str] | None = None) -> dict:
+    args = parse_args(argv)
+    seen, unseen = load_manifest(split="seen"), load_manifest(split="unseen")
+    foreign = [s for s in unseen if s.name in FOREIGN]
+    unseen = [s for s in unseen if s.name not in FOREIGN]
+    engine, _ = prepare_engine(args.model, args.gallery, unseen)
+    references = [engine.get(name) for name in engine.names()]
+    split_of = {s.name: "seen" for s in seen} | {s.name: "unseen" for s in unseen}
+    truths = build_truths(engine, {n: s for n, s in split_of.items() if n in engine.names()})
+    specs = [s for s in seen + unseen if s.name in truths]
+    specs = specs[:: args.objects] if args.objects else specs
+    meshes = load_object_meshes(specs + foreign)
+    foreign_meshes = {s.name: meshes.pop(s.name) for s in foreign}
+    truths |= foreign_truths(foreign_meshes)
+    for name, mesh in {**meshes, **foreign_meshes}.items():  # ADD-S as the evaluation's
+        truths[name].model_points = sample_surface(mesh, ADD_S_POINTS, 1).astype(np.float64)
+    cases = build_cases(args.families, meshes, foreign_meshes, truths, args.seed)
+    calibration = args.model.parent / "confidence.json"
+    report = {"cases": len(cases), "families": args.families, "variants": {}, "settings": {}}
+    for name, changes in [("default", {}), *args.variant]:
+        settings = EngineSettings(**changes)
+        variant = Engine(
+            engine.mapper, settings, Calibration.load(calibration) if calibration.exists() else None
+        )
+        variant.load(references)
+        records = run_variant(variant, cases, truths)
+        report["settings"][name] = changes
+        report["variants"][name] = {
+            family: summary([r for r in records if r["family"] == family])
+            for family in args.families
+        }
+        print(f"{name}: {len(records)} cases", flush=True)
+    print_table(report)
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=1))
+    return report
+
+
+if __name__ == "__main__":
+    main()
