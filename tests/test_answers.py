@@ -154,6 +154,27 @@ def test_noise_is_no_match(engine):
 
 
 @needs_model
+@needs_calibration
+def test_one_flat_face_is_never_a_match(engine):
+    # a flat disc as big as kuka-link-0's base: the base seen from below shows nothing else,
+    # and its turn about the normal is anybody's guess; a robot must not act on it
+    rng = np.random.default_rng(7)
+    scale = engine.get("kuka-link-0").scale
+    disc = rng.uniform(-scale, scale, size=(6000, 2))
+    disc = disc[np.linalg.norm(disc, axis=1) < scale][:2048]
+    flat = np.column_stack([disc, rng.normal(scale=0.002 * scale, size=len(disc))])
+    for seed in range(3):
+        points, _, _ = placed(flat, seed)
+        answer = engine.align(points, candidates=["kuka-link-0"])
+        assert answer.verdict != "match"
+        assert any("one plane" in reason for reason in answer.reasons)
+    # the same part seen whole still is
+    whole, rotation, translation = placed(np.asarray(engine.get("kuka-link-0").points), 8)
+    answer = engine.align(whole, candidates=["kuka-link-0"])
+    assert answer.verdict == "match" and right(engine, "kuka-link-0", answer, rotation, translation)
+
+
+@needs_model
 @pytest.mark.parametrize("as_mesh", [True, False], ids=["mesh", "cloud"])
 def test_registration_of_a_mesh_and_of_a_cloud_produces_views(engine, as_mesh):
     mesh = pybullet_mesh("duck.obj")

@@ -33,6 +33,7 @@ from service.engine.icp import Surface, icp
 from service.engine.mapping import Mapper
 from service.engine.normalize import normalize, radius, subsample
 from service.engine.normals import estimate_normals, orient_by_views
+from service.engine.principal_axes import flatness
 from service.engine.reference import Reference
 from service.engine.surroundings import set_aside_surroundings
 from service.engine.symmetry import Symmetry, find_symmetry
@@ -175,6 +176,7 @@ class Fit:
 
 
 VIEW_POINTS = 512  # a rendered view's grid is made of at most this many of its points
+FLAT = 0.03  # an observation this flat (smallest over largest principal spread) is one face
 DIFFERENT_DEG = 10.0  # poses this far apart (symmetry accounted for) are different answers
 ALIKE = 0.9  # ... and fit alike when within this share of the best's fit x coverage
 MAX_ALTERNATIVES = 3
@@ -402,22 +404,30 @@ class Engine:
             scene, np.random.default_rng(settings.seed), query.viewpoint
         )
         query.clock.lap("surroundings")
-        answer = None
+        answer, seen = None, scene
         for reading in readings:
             if answer is not None and answer.fit * answer.coverage >= settings.excellent:
                 break
             found = self._align_reading(query, reading.points, reading.spacing)
             found.points_set_aside = reading.set_aside
             if answer is None or found.fit * found.coverage > answer.fit * answer.coverage:
-                answer = found
+                answer, seen = found, reading.points
         if answer.verdict != "no_match":  # 9. How far to trust it.
-            self._judge(answer, min_confidence, query)
+            self._judge(answer, min_confidence, query, flatness(seen))
         answer.timings_ms = query.clock.total()
         return answer
 
-    def _judge(self, answer: Alignment, min_confidence: float | None, query: Query) -> None:
-        """Confidence, verdict and reasons of an answer (``service.engine.confidence``)."""
+    def _judge(
+        self, answer: Alignment, min_confidence: float | None, query: Query, flat: float
+    ) -> None:
+        """Confidence, verdict and reasons of an answer (``service.engine.confidence``).
+        ``flat`` is the observation's ``flatness``: one flat face of a part that is not flat
+        itself fixes neither its turn about the face's normal nor where along the face it
+        lies (a crop or an occlusion draws the outline), so such an answer is never a
+        "match"."""
         settings = self.settings
+        reference = query.snapshot.entries[answer.label].reference
+        one_face = flat < FLAT and flatness(np.asarray(reference.points)) >= FLAT
         values = confidence.measures(
             answer.fit,
             answer.coverage,
@@ -438,14 +448,22 @@ class Engine:
                 for t in (min_confidence, settings.accept, self.calibration.accept)
                 if t is not None
             )
-            if answer.confidence >= threshold:
+            if answer.confidence >= threshold and not one_face:
                 answer.verdict, answer.reasons = "match", []
                 return
             low = answer.confidence < settings.reject_below
             answer.verdict = "no_match" if low else "uncertain"
-            reasons = [
-                f"the confidence {answer.confidence:.2f} is below the threshold {threshold:.2f}"
-            ]
+            reasons = []
+            if answer.confidence < threshold:
+                reasons.append(
+                    f"the confidence {answer.confidence:.2f} is below the threshold {threshold:.2f}"
+                )
+        if one_face:
+            reasons.append(
+                f"the observed points lie on one plane (thickness {flat:.1%} of their extent): "
+                f"one flat face does not fix {answer.label}'s pose; look at the part from where "
+                "more than one of its faces is seen"
+            )
         reasons += confidence.reasons(
             answer.label, values, answer.runner_up_label, answer.ambiguous
         )

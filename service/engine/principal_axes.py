@@ -23,6 +23,13 @@ def principal_axes(centred: np.ndarray) -> np.ndarray:
     return axes
 
 
+def flatness(points: np.ndarray) -> float:
+    """How flat a cloud is: its smallest principal spread over its largest (0: one plane)."""
+    centred = points - points.mean(axis=0)
+    variances = np.linalg.eigvalsh(centred.T @ centred / max(len(centred), 1))
+    return float(np.sqrt(max(variances[0], 0.0) / max(variances[2], 1e-300)))
+
+
 def principal_frame(centred: np.ndarray) -> np.ndarray:
     """Principal axes with each sign chosen so the cloud's third moment along it is positive.
 
