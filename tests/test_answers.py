@@ -111,8 +111,9 @@ def test_a_clean_cloud_sets_nothing_aside(engine):
 
 
 @needs_model
-def test_a_millimetre_cloud_is_no_match_naming_the_units(engine):
-    scene, _, _ = placed(np.asarray(engine.get("mug").points, np.float64), 4)
+@pytest.mark.parametrize("part", ["mug", "kuka-link-0"])  # kuka-link-0 in mm: near no part's
+def test_a_millimetre_cloud_is_no_match_naming_the_units(engine, part):  # size, yet a big one's
+    scene, _, _ = placed(np.asarray(engine.get(part).points, np.float64), 4)
     answer = engine.align(scene * 1000)
     assert answer.verdict == "no_match"
     assert any("millimetres" in reason for reason in answer.reasons), answer.reasons

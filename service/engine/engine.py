@@ -469,7 +469,9 @@ class Engine:
         )
         size = answer.size_ratio * query.snapshot.entries[answer.label].reference.scale
         scales = query.snapshot.scales[query.allowed]
-        for factor in UNIT_FACTORS:  # would the cloud fit a reference in other units?
+        for factor in UNIT_FACTORS:  # the part does not explain the cloud: other units?
+            if values["fit"] >= POOR_FIT:
+                break
             if self._plausible(scales, size / factor, settings.size_ratio).any():
                 reasons.append(size_reason(factor, also=True))
                 break
@@ -607,10 +609,22 @@ class Engine:
             candidates=[],
             verdict="no_match",
             confidence=0.0,
-            reasons=[size_reason(float(ratio[nearest]))],
+            reasons=self._size_reasons(snapshot.scales[allowed], size, float(ratio[nearest])),
             size_ratio=float(ratio[nearest]),
             points=len(observed),
         )
+
+    def _size_reasons(self, scales: np.ndarray, size: float, nearest: float) -> list[str]:
+        """Why no reference fits an observation of radius ``size`` (``nearest`` times the
+        nearest reference's scale), and the unit it would fit a reference in, if one: a part
+        in millimetres may be about as big as another registered in metres."""
+        said = [size_reason(nearest)]
+        if not any(unit in said[0] for unit in ("millimetres", "centimetres")):
+            for factor in UNIT_FACTORS:
+                if self._plausible(scales, size / factor, self.settings.size_ratio).any():
+                    said.append(size_reason(factor, also=True))
+                    break
+        return said
 
     @staticmethod
     def _plausible(scales: np.ndarray, size: float, ratio: tuple[float, float]) -> np.ndarray:
@@ -693,6 +707,7 @@ def excellent(fits: list[Fit], settings: EngineSettings) -> bool:
 
 
 UNIT_FACTORS = (1000.0, 0.001, 100.0, 0.01)  # millimetres, metres, centimetres, metres
+POOR_FIT = 0.8  # an answer whose part holds less of the cloud may be a cloud in other units
 
 
 def size_reason(factor: float, also: bool = False) -> str:
