@@ -106,6 +106,6 @@ def test_quick_run_writes_the_report(tmp_path: Path):
     }
     answers = results["answers"]
     assert answers["verdicts"] and answers["symmetric"] and answers["targets"]
-    assert {row["issue"] for row in answers["targets"]} == {11, 16}
+    assert {row["issue"] for row in answers["targets"]} == {11, 12, 16}
     for name in PLOTS.values():
         assert (tmp_path / name).stat().st_size > 1000, name
