@@ -741,6 +741,7 @@ QUICK_POINTS = 24  # observed and expected points of the quick look that screens
 WHOLE_REFINED = 2  # hypotheses refined in each whole-part pass
 ENOUGH_BEHIND = 0.8  # a hypothesis this far below an excellent refined one is not refined
 FAR_BELOW = 0.5  # nor one below this share of the best hypothesis before refining
+RESCUE_BELOW = 0.7  # "fits well" for settings.rescued_parts: fit x coverage
 
 
 class Search:
@@ -805,7 +806,11 @@ class Search:
     def refine_best_first(self, fits: list[Fit], budget: int) -> None:
         """Refine the best ``budget`` hypotheses (at most two a candidate), best first, leaving
         out those far below the best before refining; stop once one is excellent and the next
-        looks clearly worse than it."""
+        looks clearly worse than it. If none then fits well (``RESCUE_BELOW``), the best two
+        hypotheses of each next part (up to ``settings.rescued_parts`` parts) are refined too,
+        until one does: a part's right pose may verify worse than another part's before
+        refinement (a single view seen from an unlucky side), and a part told alone then
+        finds it."""
         settings = self.settings
         per_row: dict[int, int] = {}
         refined: list[Fit] = []
@@ -821,6 +826,20 @@ class Search:
             per_row[candidate.row] = per_row.get(candidate.row, 0) + 1
             self.refine(candidate)
             refined.append(candidate)
+        if not settings.rescued_parts:
+            return
+        best = max((f.score for f in refined), default=0.0)
+        rescued: dict[int, int] = {}
+        for candidate in fits:  # nothing fits well: each next part's best get their chance
+            if best >= RESCUE_BELOW:
+                break
+            if candidate.row in per_row or rescued.get(candidate.row, 0) == 2:
+                continue
+            if candidate.row not in rescued and len(rescued) == settings.rescued_parts:
+                continue
+            rescued[candidate.row] = rescued.get(candidate.row, 0) + 1
+            self.refine(candidate)
+            best = max(best, candidate.score)
 
     def hypothesise(self, entry: Entry, chosen: list[str]) -> Hypotheses:
         settings = self.settings
