@@ -26,19 +26,24 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 from pathlib import Path
 
 import numpy as np
 
 from evaluation.cases import make_cases
-from evaluation.evaluate import FOREIGN, build_truths, case_viewpoint, foreign_truths
+from evaluation.evaluate import (
+    FOREIGN,
+    Study,
+    add_model_points,
+    build_truths,
+    engine_runner,
+    foreign_truths,
+    run_system,
+)
 from evaluation.evaluate_mapping import prepare_engine
-from evaluation.metrics import ADD_S_POINTS, PRECISE_ADD_S
-from evaluation.records import Answer, Truth, case_record
+from evaluation.metrics import summarize
 from service.engine.confidence import Calibration
 from service.engine.engine import Engine
-from service.engine.sampling import sample_surface
 from service.settings import MODELS_DIR, EngineSettings
 from training.objects import load_manifest, load_object_meshes
 
@@ -79,31 +84,16 @@ def build_cases(families, meshes, foreign_meshes, truths, seed):
     return cases
 
 
-def run_variant(engine: Engine, cases, truths: dict[str, Truth]) -> list[dict]:
-    candidates = engine.names()
-    records = []
-    for case in cases:
-        viewpoint = case_viewpoint("engine", case)
-        began = time.perf_counter()
-        answer = engine.align(case.points, candidates=candidates, viewpoint=viewpoint)
-        latency = (time.perf_counter() - began) * 1e3
-        record = case_record(
-            case, truths, Answer.of_alignment(answer), latency, viewpoint is not None
-        )
-        records.append(record)
-    return records
-
-
 def summary(records: list[dict]) -> dict:
+    figures = summarize(records)
     steps = sorted({step for r in records for step in r["timings_ms"]})
-    precise = [bool(r["label_ok"] and (r["add_s"] or 1.0) < PRECISE_ADD_S) for r in records]
     return {
-        "cases": len(records),
-        "success": float(np.mean([r["success"] for r in records])),
-        "precise": float(np.mean(precise)),
+        "cases": figures["cases"],
+        "success": figures["success"],
+        "precise": figures["precise"],
         "match_and_right": float(np.mean([r["accepted"] and r["success"] for r in records])),
         "false_accepts": int(sum(r["accepted"] and not r["success"] for r in records)),
-        "latency_ms_median": float(np.median([r["latency_ms"] for r in records])),
+        "latency_ms_median": figures["latency_ms_median"],
         "steps_ms": {
             step: float(np.median([r["timings_ms"].get(step, 0.0) for r in records]))
             for step in steps
@@ -168,8 +158,7 @@ def main(argv: list[str] | None = None) -> dict:
     meshes = load_object_meshes(specs + foreign)
     foreign_meshes = {s.name: meshes.pop(s.name) for s in foreign}
     truths |= foreign_truths(foreign_meshes)
-    for name, mesh in {**meshes, **foreign_meshes}.items():  # ADD-S as the evaluation's
-        truths[name].model_points = sample_surface(mesh, ADD_S_POINTS, 1).astype(np.float64)
+    add_model_points(truths, {**meshes, **foreign_meshes})  # ADD-S as the evaluation's
     cases = build_cases(args.families, meshes, foreign_meshes, truths, args.seed)
     calibration = args.model.parent / "confidence.json"
     report = {"cases": len(cases), "families": args.families, "variants": {}, "settings": {}}
@@ -179,7 +168,9 @@ def main(argv: list[str] | None = None) -> dict:
             engine.mapper, settings, Calibration.load(calibration) if calibration.exists() else None
         )
         variant.load(references)
-        records = run_variant(variant, cases, truths)
+        study = Study(name, variant.names(), cases, ("engine",))
+        run = engine_runner(variant, "engine", study.gallery)
+        records = run_system(run, "engine", study, truths)
         report["settings"][name] = changes
         report["variants"][name] = {
             family: summary([r for r in records if r["family"] == family])

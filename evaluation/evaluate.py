@@ -460,6 +460,13 @@ def foreign_truths(meshes: dict) -> dict[str, Truth]:
     return truths
 
 
+def add_model_points(truths: dict[str, Truth], meshes: dict) -> None:
+    """ADD-S on a dense sample of each object's mesh (``ADD_S_POINTS``), for those with one."""
+    for name, mesh in meshes.items():
+        if name in truths:
+            truths[name].model_points = sample_surface(mesh, ADD_S_POINTS, 1).astype(np.float64)
+
+
 def evaluate(
     plan: Plan,
     seed: int = 0,
@@ -494,9 +501,7 @@ def evaluate(
     every = full_specs + side_specs + sensor_side_specs + foreign_specs + symmetric_specs
     meshes = load_object_meshes({s.name: s for s in every}.values())
     truths |= foreign_truths({s.name: meshes[s.name] for s in foreign_specs})
-    for name, mesh in meshes.items():  # ADD-S on a dense sample of the mesh
-        if name in truths:
-            truths[name].model_points = sample_surface(mesh, ADD_S_POINTS, 1).astype(np.float64)
+    add_model_points(truths, meshes)
     full_meshes = {s.name: meshes[s.name] for s in full_specs}
     side_meshes = {s.name: meshes[s.name] for s in side_specs}
     # the noise study: the first side-by-side objects, seen and unseen in turn

@@ -104,6 +104,7 @@ class Entry:
     # EXPECTED indices of the points each view sees (row K: of all points), drawn once, for
     # coverage; repeated where a view sees fewer
     expected: np.ndarray
+    flatness: float  # principal_axes.flatness of its points (a flat part: under FLAT)
 
     @classmethod
     def of(cls, reference: Reference, blur: float) -> Entry:
@@ -127,6 +128,7 @@ class Entry:
             Views.of(points, visible),
             Symmetry.from_description(reference.symmetry, points.mean(axis=0)),
             expected,
+            flatness(points),
         )
 
 
@@ -426,8 +428,8 @@ class Engine:
         lies (a crop or an occlusion draws the outline), so such an answer is never a
         "match"."""
         settings = self.settings
-        reference = query.snapshot.entries[answer.label].reference
-        one_face = flat < FLAT and flatness(np.asarray(reference.points)) >= FLAT
+        entry = query.snapshot.entries[answer.label]
+        one_face = flat < FLAT <= entry.flatness
         values = confidence.measures(
             answer.fit,
             answer.coverage,
@@ -467,14 +469,10 @@ class Engine:
         reasons += confidence.reasons(
             answer.label, values, answer.runner_up_label, answer.ambiguous
         )
-        size = answer.size_ratio * query.snapshot.entries[answer.label].reference.scale
-        scales = query.snapshot.scales[query.allowed]
-        for factor in UNIT_FACTORS:  # the part does not explain the cloud: other units?
-            if values["fit"] >= POOR_FIT:
-                break
-            if self._plausible(scales, size / factor, settings.size_ratio).any():
-                reasons.append(size_reason(factor, also=True))
-                break
+        if values["fit"] < POOR_FIT:  # the part does not explain the cloud: other units?
+            size = answer.size_ratio * entry.reference.scale
+            hint = self._unit_hint(query.snapshot.scales[query.allowed], size)
+            reasons += [hint] if hint else []
         answer.reasons = reasons
 
     def _align_reading(self, query: Query, scene: np.ndarray, spacing: float) -> Alignment:
@@ -619,12 +617,16 @@ class Engine:
         nearest reference's scale), and the unit it would fit a reference in, if one: a part
         in millimetres may be about as big as another registered in metres."""
         said = [size_reason(nearest)]
-        if not any(unit in said[0] for unit in ("millimetres", "centimetres")):
-            for factor in UNIT_FACTORS:
-                if self._plausible(scales, size / factor, self.settings.size_ratio).any():
-                    said.append(size_reason(factor, also=True))
-                    break
-        return said
+        hint = None if unit_ratio(nearest) else self._unit_hint(scales, size)
+        return said + ([hint] if hint else [])
+
+    def _unit_hint(self, scales: np.ndarray, size: float) -> str | None:
+        """The reason naming the first unit in which an observation of radius ``size`` would
+        be the size of one of these ``scales``; None if in none."""
+        for factor in UNIT_FACTORS:
+            if self._plausible(scales, size / factor, self.settings.size_ratio).any():
+                return size_reason(factor, also=True)
+        return None
 
     @staticmethod
     def _plausible(scales: np.ndarray, size: float, ratio: tuple[float, float]) -> np.ndarray:
@@ -714,26 +716,35 @@ def size_reason(factor: float, also: bool = False) -> str:
     """Why an observation of ``factor`` times the nearest reference's size matches nothing;
     with ``also``: it fitted no part of its own size, but ``factor`` times smaller (or larger)
     it would be a registered part's size."""
+    named = unit_ratio(factor)
+    if named is None:
+        return (
+            f"no registered part has this size: the cloud's radius is {factor:.2g} times the "
+            "nearest reference's scale"
+        )
+    ratio, unit, other = named
+    small, big = (unit, "metres") if ratio > 1 else ("metres", unit)
+    if also:
+        scaled = f"1/{factor:,.0f} of" if ratio > 1 else f"{1 / factor:,.0f} times"
+        return (
+            f"at {scaled} its size the cloud would be a registered part's size: it may "
+            f"be in {small} while the references are in {big}; send {other}"
+        )
+    times = f"{factor:,.0f} times" if ratio > 1 else f"1/{1 / factor:,.0f} of"
+    return (
+        f"the cloud is {times} the size of the nearest reference: it is probably in "
+        f"{small} while the references are in {big}; send {other}"
+    )
+
+
+def unit_ratio(factor: float) -> tuple[float, str, str] | None:
+    """The unit ratio a size ``factor`` is near (within 2x): (ratio, the other unit, what to
+    send); None when it is near none of millimetres, centimetres against metres."""
     for unit_factor, unit in ((1000.0, "millimetres"), (100.0, "centimetres")):
         for ratio, other in ((unit_factor, "metres"), (1 / unit_factor, unit)):
-            if not 0.5 * ratio <= factor <= 2 * ratio:
-                continue
-            small, big = (unit, "metres") if ratio > 1 else ("metres", unit)
-            times = f"{factor:,.0f} times" if ratio > 1 else f"1/{1 / factor:,.0f} of"
-            if also:
-                scaled = f"1/{factor:,.0f} of" if ratio > 1 else f"{1 / factor:,.0f} times"
-                return (
-                    f"at {scaled} its size the cloud would be a registered part's size: it may "
-                    f"be in {small} while the references are in {big}; send {other}"
-                )
-            return (
-                f"the cloud is {times} the size of the nearest reference: it is probably in "
-                f"{small} while the references are in {big}; send {other}"
-            )
-    return (
-        f"no registered part has this size: the cloud's radius is {factor:.2g} times the "
-        "nearest reference's scale"
-    )
+            if 0.5 * ratio <= factor <= 2 * ratio:
+                return ratio, unit, other
+    return None
 
 
 EXPECTED = 128  # expected-visible points drawn per view for coverage

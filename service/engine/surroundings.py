@@ -113,9 +113,10 @@ def _in_plane(normal: np.ndarray) -> np.ndarray:
     return np.stack([first, np.cross(normal, first)], axis=1)
 
 
-def groups(points: np.ndarray, link: float) -> np.ndarray:
-    """A group label per point: connected components of the within-``link`` neighbour graph."""
-    pairs = cKDTree(points).query_pairs(link, output_type="ndarray")
+def groups(points: np.ndarray, link: float, tree: cKDTree | None = None) -> np.ndarray:
+    """A group label per point: connected components of the within-``link`` neighbour graph
+    (``tree``: a ``cKDTree`` of ``points``, if one is at hand)."""
+    pairs = (tree or cKDTree(points)).query_pairs(link, output_type="ndarray")
     graph = coo_matrix(
         (np.ones(len(pairs), dtype=bool), (pairs[:, 0], pairs[:, 1])),
         shape=(len(points), len(points)),
@@ -150,8 +151,9 @@ def set_aside_surroundings(
     table) is judged on as many points as a part that fills it. Then every point inside the
     part's bounding sphere (and above the table) is the part's."""
     sample = points[subsample(points, MAX_POINTS, rng)]
-    step = median_spacing(sample)
-    everything = the_part(sample, groups(sample, LINK_SPACINGS * step), step)
+    tree = cKDTree(sample)
+    step = median_spacing(sample, tree)
+    everything = the_part(sample, groups(sample, LINK_SPACINGS * step, tree), step)
     whole = _reading(points, sample, everything, None, step)
     found = plane_candidate(sample, step, rng)
     if found is None:
@@ -190,10 +192,10 @@ def fitted(on_plane: np.ndarray, plane: np.ndarray, most: float) -> tuple[np.nda
     return np.append(normal, normal @ centre), thickness
 
 
-def median_spacing(points: np.ndarray) -> float:
+def median_spacing(points: np.ndarray, tree: cKDTree) -> float:
     """The median distance from a point to its nearest neighbour, over the first 256 points
-    (``points`` is a random sample)."""
-    distance, _ = cKDTree(points).query(points[: min(256, len(points))], k=2)
+    (``points`` is a random sample; ``tree`` a ``cKDTree`` of them)."""
+    distance, _ = tree.query(points[: min(256, len(points))], k=2)
     return float(np.median(distance[:, 1]))
 
 
