@@ -227,11 +227,30 @@ def junk_cloud(kind: str, size: float, count: int, rng: np.random.Generator) -> 
 # --- symmetry --------------------------------------------------------------------------------
 
 
+OFF_SURFACE = 0.03  # share of the radius: beyond a faceted mesh's sag, within a notch's depth
+
+
 def surface_gap(points: np.ndarray, other: np.ndarray) -> float:
     """Mean distance from each of ``points`` to the nearest of ``other``: 0 for the same
     surface (up to the sampling's spacing)."""
     distances, _ = cKDTree(np.asarray(other, np.float64)).query(np.asarray(points, np.float64))
     return float(distances.mean())
+
+
+def turned_off_surface(
+    mesh: trimesh.Trimesh, axis: np.ndarray, angle: float, samples: int = 4096
+) -> float:
+    """The share of the part's surface that a turn by ``angle`` (radians) about ``axis``
+    (through the surface centroid) moves farther than ``OFF_SURFACE`` of its radius from the
+    surface (a dense resample): about 0 for a symmetry, a few percent for a notch or a cross
+    hole that the turn moves, which a mean distance (``surface_gap``) hardly sees."""
+    points = sample_surface(mesh, samples, 1).astype(np.float64)
+    dense = sample_surface(mesh, 50 * samples, 2).astype(np.float64)
+    centre = surface_centroid(mesh)
+    scale = float(np.linalg.norm(points - points.mean(axis=0), axis=1).max())
+    rotation, shift = turn_about(axis, angle, centre)
+    distances, _ = cKDTree(dense).query(points @ rotation.T + shift)
+    return float(np.mean(distances > OFF_SURFACE * scale))
 
 
 def symmetry_axis(mesh: trimesh.Trimesh, order: int, samples: int = 4096) -> np.ndarray:

@@ -88,3 +88,25 @@ def test_a_reference_without_a_field_is_recomputed(replicas, mapper):
         np.linalg.norm(points - points.mean(0), axis=1).max()
     )
     assert b.sync() == 1 and b.sync() == 0  # the rewritten row is followed once
+
+
+def test_a_symmetry_found_by_an_earlier_rule_is_found_again_with_nothing_else_changed(
+    replicas, mapper
+):
+    a, _ = replicas
+    box = np.random.default_rng(5).uniform(-1, 1, (2048, 3))
+    box *= 1 / np.abs(box).max(axis=1, keepdims=True)  # on a cube's faces
+    box = (box * [0.02, 0.04, 0.06]).astype(np.float32)  # a box: four rotations fit
+    registered, _, _ = a.register("box", box)
+    assert registered.symmetry["kind"] == "discrete" and registered.symmetry["rule"] >= 2
+    # the row as the earlier rule wrote it: no rule recorded, and it found none
+    earlier = registered.with_(symmetry={"kind": "none", "centre": [0.0, 0.0, 0.0]})
+    a.store.put(earlier, a.model_hash, replace=True)
+
+    restarted = catalog_on(a.store, mapper)  # a start: the symmetry alone is found again
+    found = restarted.engine.get("box")
+    assert found.symmetry == registered.symmetry
+    (record,) = a.store.load_records()
+    assert record.reference.symmetry == registered.symmetry  # written back
+    for name in ("points", "mapped", "normals", "view_grids", "field"):
+        assert sha(getattr(record.reference, name)) == sha(getattr(registered, name)), name

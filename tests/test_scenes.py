@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from evaluation.camera import DEFAULT_CAMERA, DEPTH_NOISE_SHARE
 from evaluation.cases import object_scale
+from evaluation.evaluate import SYMMETRIC_PARTS
 from evaluation.scenes import (
     CROP_SCALES,
     JUNK_KINDS,
@@ -25,8 +26,10 @@ from evaluation.scenes import (
     symmetry_axis,
     table_scene,
     turn_about,
+    turned_off_surface,
 )
 from service.engine.sampling import sample_surface
+from training.objects import load_manifest, load_object_meshes
 
 from .conftest import pybullet_mesh
 
@@ -184,3 +187,18 @@ def test_symmetry_axes_of_a_cylinder_a_square_box_and_a_real_part():
     tilt = np.cross(axis, [1.0, 0, 0])
     rotation, shift = turn_about(tilt / np.linalg.norm(tilt), np.radians(60), centre)
     assert surface_gap(points @ rotation.T + shift, other) > 3 * floor
+
+
+@pytest.mark.parametrize("name", list(SYMMETRIC_PARTS))
+def test_the_symmetric_family_s_parts_have_the_order_it_says(name):
+    """The evaluation's ground truth, measured on the mesh: a turn by 360°/order (any turn, for
+    a revolution) leaves the surface in place, a turn by half that step does not."""
+    spec = {s.name: s for s in load_manifest()}[name]
+    mesh = load_object_meshes([spec])[name]
+    order = SYMMETRIC_PARTS[name]
+    axis = symmetry_axis(mesh, order)
+    same = [37.0, 101.0, 229.0] if order == 0 else [360.0 / order]
+    for degrees in same:
+        assert turned_off_surface(mesh, axis, np.radians(degrees)) <= 0.005, degrees
+    if order:
+        assert turned_off_surface(mesh, axis, np.radians(180.0 / order)) > 0.01

@@ -273,6 +273,13 @@ class Engine:
             symmetry=symmetry.describe(),
         )
 
+    def refind_symmetry(self, reference: Reference) -> Reference:
+        """The reference with its symmetry found again by this version's rule, from its stored
+        surface (points, normals, distance field), every other field as it was."""
+        surface = Entry.of(reference, self.settings.grid_blur).surface
+        symmetry = find_symmetry(surface, reference.scale, np.random.default_rng(0))
+        return reference.with_(symmetry=symmetry.describe())
+
     def view_grid(self, points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The grid of an augmented view: a random pose, a single camera's view with
         probability ``partial_views``, and 10-100 % of the remaining points kept."""

@@ -22,6 +22,7 @@ import trimesh
 from service import memory
 from service.engine.engine import Engine
 from service.engine.reference import Reference
+from service.engine.symmetry import Symmetry
 from service.errors import ReferenceExists
 from service.gallery.gallery_file import load_gallery
 from service.gallery.store import SEEDED_KEY, GalleryStore, StoredReference
@@ -84,13 +85,20 @@ class Catalog:
 
     def _usable(self, record: StoredReference, write_back: bool) -> tuple[Reference, str]:
         """The record's reference, recomputed from its points when it was stored for another
-        model or without a field this version needs (and then, with ``write_back``, stored
-        unless another replica changed it meanwhile); and the checksum of the row it stands for."""
+        model or without a field this version needs, its symmetry alone found again when an
+        earlier rule found it (and then, with ``write_back``, stored unless another replica
+        changed it meanwhile); and the checksum of the row it stands for."""
         if not record.missing and record.model_hash == self.model_hash:
-            return record.reference, record.sha256
-        why = f"stored without {', '.join(record.missing)}" if record.missing else "another model"
-        log.info("recomputing reference %r: %s", record.name, why)
-        reference = self.engine.make_reference(record.name, record.points)
+            if not Symmetry.outdated(record.reference.symmetry):
+                return record.reference, record.sha256
+            log.info("finding the symmetry of reference %r again: an earlier rule", record.name)
+            reference = self.engine.refind_symmetry(record.reference)
+        else:
+            why = "another model"
+            if record.missing:
+                why = f"stored without {', '.join(record.missing)}"
+            log.info("recomputing reference %r: %s", record.name, why)
+            reference = self.engine.make_reference(record.name, record.points)
         if write_back:
             rewritten = self.store.rewrite(reference, self.model_hash, was=record.sha256)
             return reference, rewritten or record.sha256
