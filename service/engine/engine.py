@@ -37,7 +37,7 @@ from service.engine.principal_axes import flatness
 from service.engine.reference import Reference
 from service.engine.surroundings import set_aside_surroundings
 from service.engine.symmetry import Symmetry, find_symmetry
-from service.engine.verification import Occupancy, coverage, fit
+from service.engine.verification import Occupancy, coverage, fit, surface_distance
 from service.engine.views import CAMERA_DISTANCE, Views, render, sample_spacing, splat_visible
 from service.engine.visibility import random_camera, visible_points
 from service.errors import EmptyGallery, UnknownReference
@@ -182,6 +182,9 @@ FLAT = 0.03  # an observation this flat (smallest over largest principal spread)
 DIFFERENT_DEG = 10.0  # poses this far apart (symmetry accounted for) are different answers
 ALIKE = 0.9  # ... and fit alike when within this share of the best's fit x coverage
 MAX_ALTERNATIVES = 3
+NEAR_SOURCE = "near-symmetry"  # the hypothesis of a pose found by turning the best one
+NEAR_REFINED = 3  # turns about a nearly round axis refined: those nearest the surface
+RESIDUAL_ALIKE = 1.15  # a turned pose this much farther from the surface is no alternative
 
 
 class Stopwatch:
@@ -521,9 +524,15 @@ class Engine:
         if not fits:  # nothing of a plausible size: no search over the wrong sizes
             return self._no_match_by_size(snapshot, allowed, observed, scores)
 
+        # 6b. The best part turned by each of its near-symmetries, refined: a notch or a cross
+        # hole may be all that tells those poses apart.
+        fits.sort(key=lambda f: -f.score)
+        if query.refine:
+            fits = search.resolve_near(fits)
+            clock.lap("near-symmetries")
+
         # 7. Decide: the best fit x coverage over every candidate and hypothesis; its
         # canonical pose among those its symmetry makes equivalent; other poses that fit alike.
-        fits.sort(key=lambda f: -f.score)
         winner = fits[0]
         label = snapshot.classifier.labels[winner.row]
         entry = snapshot.entries[label]
@@ -940,6 +949,54 @@ class Search:
         (checked,) = self.verify(candidate.row, entry, made, count=EXPECTED)
         candidate.rotation, candidate.translation = rotation, translation
         candidate.fit, candidate.coverage, candidate.refined = checked.fit, checked.coverage, True
+
+    def resolve_near(self, fits: list[Fit]) -> list[Fit]:
+        """``fits`` (best first) with the best pose tried turned by each near-symmetry of its
+        part (about the part's centre, in the model frame), each refined: a notch or a cross
+        hole may be all that tells those poses apart, too little to move fit x coverage. Of
+        the poses that fit alike, the one whose points lie closest to the surface (the mean
+        distance, cut at three tolerances) goes first; those as close as it (within
+        ``RESIDUAL_ALIKE``) stay as alternatives, the clearly farther ones go."""
+        best = fits[0]
+        entry = self.snapshot.entries[self.labels[best.row]]
+        symmetry = entry.symmetry
+        if not best.refined or not len(symmetry.near):
+            return fits
+        centre = symmetry.centroid  # scene = R (N (m - c) + c) + t
+        rotations = np.einsum("ij,njk->nik", best.rotation, symmetry.near)
+        translations = best.translation + (centre - symmetry.near @ centre) @ best.rotation.T
+        # those found by refining at registration are refined; of the turns about a nearly
+        # round axis, the few nearest the surface before refining
+        known = symmetry.refined_near
+        model = np.einsum(
+            "nji,nsj->nsi", rotations[known:], self.refine_on[None] - translations[known:, None]
+        )
+        cut = 3 * self.settings.tolerance * entry.reference.scale
+        distance, _ = surface_distance(entry.surface, model)
+        screened = np.argsort(np.minimum(distance, cut).mean(axis=1))[:NEAR_REFINED]
+        turned = []
+        for k in [*range(known), *(known + screened)]:
+            candidate = Fit(best.row, rotations[k], translations[k], NEAR_SOURCE, best.view, 0, 0)
+            self.refine(candidate)
+            turned.append(candidate)
+        alike = [best] + [t for t in turned if t.score >= ALIKE * best.score]
+        residuals = [self.residual(entry, f) for f in alike]
+        chosen = int(np.argmin(residuals))
+        close = [
+            f
+            for f, r in zip(alike, residuals, strict=True)
+            if f is not alike[chosen] and r <= RESIDUAL_ALIKE * residuals[chosen]
+        ]
+        return [alike[chosen], *close, *fits[1:]]
+
+    def residual(self, entry: Entry, candidate: Fit) -> float:
+        """Mean distance of the refinement's points to the surface at the pose, each cut at
+        three tolerances, over the part's scale."""
+        scale = entry.reference.scale
+        cut = 3 * self.settings.tolerance * scale
+        model = (self.refine_on - candidate.translation) @ candidate.rotation
+        distance, _ = surface_distance(entry.surface, model)
+        return float(np.minimum(distance, cut).mean() / scale)
 
     def candidate_fits(self, fits: list[Fit], scores: np.ndarray) -> list[CandidateFit]:
         """One line a candidate, best first: its best pose's mean distance from the observed

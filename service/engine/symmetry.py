@@ -31,7 +31,7 @@ trace), so the same surface in the same place always gives the same matrix.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import permutations, product
 
 import numpy as np
@@ -41,7 +41,7 @@ from service.engine.icp import Surface, icp, rotation_vector
 from service.engine.principal_axes import principal_axes
 from service.engine.verification import PATCH_SPACINGS, surface_distance
 
-RULE = 2  # the rule's version a description records: a stored older one is found again
+RULE = 3  # the rule's version a description records: a stored older one is found again
 TOLERANCE = 0.015  # share of the scale
 SPACINGS = 0.5  # or this many sample spacings, if more
 SHARE = 0.97  # of the leave-one-out share within the tolerance
@@ -58,6 +58,9 @@ SAME_DEG = 5.0  # two found rotations this close are one
 QUICK, QUICK_POINTS = 8, 128  # the first refinement of a start: iterations, points
 QUICK_SLACK = 0.05  # the share it may fall short of the reference's own within FAR tolerances
 MAX_GROUP = 120  # the largest discrete group looked for (a 60-tooth gear, both ways up)
+NEAR = 0.8  # a turn keeping this share of the reference's own within the tolerance nearly fits
+NEAR_TURN_DEG = 10.0  # about a nearly round axis, the answer is tried at turns this far apart
+MAX_NEAR = 48
 DRIFT = 0.1  # share of the scale a refined symmetry may move the sample's centroid (its own error)
 
 
@@ -67,10 +70,19 @@ class Symmetry:
     centroid: np.ndarray  # (3,) the rotations' fixed point, model frame
     rotations: np.ndarray  # (G, 3, 3), identity first: every discrete symmetry (or a flip)
     axis: np.ndarray | None = None  # revolution: unit axis through the centroid
+    # (K, 3, 3) turns about the centroid that nearly fit but are no symmetry (a flange's turn
+    # that only a notch tells apart, a shaft's end-for-end flip, a gear's tooth): poses the
+    # answer is tried at as well, since a view may hardly tell them apart
+    near: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    # the first this many of ``near`` were refined onto the part at registration; the rest are
+    # turns about a nearly round axis, every NEAR_TURN_DEG, to be screened before refining
+    refined_near: int = 0
 
     @classmethod
-    def none(cls, centroid: np.ndarray) -> Symmetry:
-        return cls("none", np.asarray(centroid, np.float64), np.eye(3)[None])
+    def none(cls, centroid: np.ndarray, near: np.ndarray | None = None, refined: int = 0):
+        near = np.zeros((0, 3, 3)) if near is None else near
+        centroid = np.asarray(centroid, np.float64)
+        return cls("none", centroid, np.eye(3)[None], near=near, refined_near=refined)
 
     def describe(self) -> dict:
         """The JSON description a reference shows (and the store keeps)."""
@@ -81,6 +93,9 @@ class Symmetry:
         elif self.kind == "discrete":
             described["rotations"] = np.round(self.rotations, 6).tolist()
         described["centre"] = np.round(self.centroid, 9).tolist()
+        if len(self.near):
+            described["near"] = np.round(self.near, 6).tolist()
+            described["refined_near"] = self.refined_near
         return described
 
     @staticmethod
@@ -93,6 +108,8 @@ class Symmetry:
     @classmethod
     def from_description(cls, described: dict, centroid: np.ndarray) -> Symmetry:
         centre = np.asarray(described.get("centre", centroid), np.float64)
+        near = np.asarray(described.get("near", np.zeros((0, 3, 3))), np.float64).reshape(-1, 3, 3)
+        refined = int(described.get("refined_near", len(near)))
         if described.get("kind") == "revolution":
             axis = np.asarray(described["axis"], np.float64)
             rotations = [np.eye(3)]
@@ -100,8 +117,14 @@ class Symmetry:
                 rotations.append(rotation_vector(np.pi * _perpendicular(axis)))
             return cls("revolution", centre, np.stack(rotations), axis / np.linalg.norm(axis))
         if described.get("kind") == "discrete":
-            return cls("discrete", centre, np.asarray(described["rotations"], np.float64))
-        return cls.none(centre)
+            return cls(
+                "discrete",
+                centre,
+                np.asarray(described["rotations"], np.float64),
+                near=near,
+                refined_near=refined,
+            )
+        return cls.none(centre, near, refined)
 
     def equivalent(self, rotation: np.ndarray) -> np.ndarray:
         """(G, 3, 3) rotations equivalent to ``rotation`` under the discrete part."""
@@ -174,6 +197,12 @@ class _SelfFit:
         far = _far(distance, self.tolerance)
         return within >= SHARE * own and far <= FAR_RATIO * self.far + FAR_EXTRA
 
+    def nearly(self, surface: Surface, points: np.ndarray, rotation, translation) -> bool:
+        """Whether the moved points keep ``NEAR`` of the share the reference's own keep."""
+        distance, _ = surface_distance(surface, points @ rotation.T + translation)
+        own = float(np.mean(self.distance < self.tolerance))
+        return float(np.mean(distance < self.tolerance)) >= NEAR * own
+
 
 def _far(distance: np.ndarray, tolerance: float) -> float:
     return float(np.mean(distance > FAR * tolerance))
@@ -227,22 +256,32 @@ def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> S
     def fits(rotation: np.ndarray, translation: np.ndarray, slack: float = 1.0) -> bool:
         return own.fits(surface, points, rotation, translation, slack)
 
-    def refined(start: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """A start about ``centre`` refined onto the reference itself, if it then fits and
-        still turns about a point near the centroid (a sample's centroid is off by a little).
-        A few iterations on a few points first: most starts of most parts lead nowhere."""
+    def refined(
+        start: np.ndarray, centre: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, bool] | None:
+        """A start about ``centre`` refined onto the reference itself, if it then nearly fits
+        and still turns about a point near the centroid (a sample's centroid is off by a
+        little), and whether it fits: a symmetry. A few iterations on a few points first:
+        most starts of most parts lead nowhere."""
         rotation, translation, _ = icp(
             chosen[:QUICK_POINTS], surface, start, _about(start, centre), noise, gate, QUICK
         )
         moved = chosen[:QUICK_POINTS] @ rotation.T + translation
         near, _ = surface_distance(surface, moved)
-        if np.mean(near < FAR * own.tolerance) < quick_share:
+        if np.mean(near < FAR * own.tolerance) < NEAR * quick_share:
             return None
         rotation, translation, _ = icp(chosen, surface, rotation, translation, noise, gate, 30)
         drift = np.linalg.norm(rotation @ centroid + translation - centroid)
-        if drift > DRIFT * scale or not fits(rotation, translation):
+        if drift > DRIFT * scale or _angle_deg(rotation, np.eye(3)) < SAME_DEG:
             return None
-        return rotation, translation
+        if fits(rotation, translation):
+            return rotation, translation, True
+        if own.nearly(surface, points, rotation, translation):
+            return rotation, translation, False
+        return None
+
+    nearly: list[np.ndarray] = []  # refined turns that nearly fit, no symmetry
+    round_turns: list[np.ndarray] = []  # turns about a nearly round axis that nearly fit
 
     for k in range(3):
         others = [spread[j] for j in range(3) if j != k]
@@ -255,14 +294,21 @@ def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> S
             continue
         axis = Rotation.from_matrix(quarter[0]).as_rotvec()
         axis = axis / np.linalg.norm(axis) * np.sign(axis @ frame[:, k])
-        centre = _fixed_point([quarter], centroid)
+        centre = _fixed_point([quarter[:2]], centroid)
         turns = [rotation_vector(axis * np.radians(a)) for a in REVOLUTION_ANGLES_DEG]
-        if all(fits(turn, _about(turn, centre), REVOLUTION_SLACK) for turn in turns):
+        if quarter[2] and all(fits(t, _about(t, centre), REVOLUTION_SLACK) for t in turns):
             flip = refined(rotation_vector(np.pi * _perpendicular(axis)), centre)
+            flip = flip if flip is not None and flip[2] else None
             if flip is not None:
-                centre = _fixed_point([quarter, flip], centroid)
+                centre = _fixed_point([quarter[:2], flip[:2]], centroid)
             rotations = [np.eye(3)] + ([flip[0]] if flip is not None else [])
             return Symmetry("revolution", centre, np.stack(rotations), axis)
+        # nearly round: where the part stands about this axis, only a detail may tell
+        step = np.radians(NEAR_TURN_DEG)
+        for j in range(1, int(round(2 * np.pi / step))):
+            turn = rotation_vector(axis * step * j)
+            if own.nearly(surface, points, turn, _about(turn, centre)):
+                round_turns.append(turn)
 
     starts = []
     for order in permutations(range(3)):
@@ -275,22 +321,42 @@ def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> S
     starts += list(Rotation.random(RANDOM_STARTS, random_state=rng).as_matrix())
     found: list[Transform] = [(np.eye(3), np.zeros(3))]
 
-    def keep(transform: tuple[np.ndarray, np.ndarray] | None) -> None:
-        if transform is not None and all(
-            _angle_deg(transform[0], other) > SAME_DEG for other, _ in found
-        ):
-            found.append(transform)
-
     for start in starts:
-        keep(refined(start, centroid))
+        result = refined(start, centroid)
+        if result is None:
+            continue
+        rotation, translation, symmetric = result
+        if not symmetric:
+            nearly.append(rotation)
+        elif all(_angle_deg(rotation, other) > SAME_DEG for other, _ in found):
+            found.append((rotation, translation))
     found = _group(found, fits)
+    group = np.stack([r for r, _ in found])
+    refined_near = _distinct_near(nearly, group)
+    near = _distinct_near([*refined_near, *round_turns], group)
     if len(found) == 1:
-        return Symmetry.none(centroid)
+        return Symmetry.none(centroid, near, len(refined_near))
     centre = _fixed_point(found[1:], centroid)
-    return Symmetry("discrete", centre, np.stack([r for r, _ in found]))
+    return Symmetry("discrete", centre, group, near=near, refined_near=len(refined_near))
+
+
+def _distinct_near(nearly: list[np.ndarray], group: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) of the turns that nearly fit, at most ``MAX_NEAR``, none a symmetry and no
+    two alike up to one (S N and N answer the same pose once made canonical)."""
+    kept: list[np.ndarray] = []
+    for rotation in nearly:
+        if _near(rotation[None], group).any():
+            continue
+        if kept and _near(np.einsum("gij,jk->gik", group, rotation), np.stack(kept)).any():
+            continue
+        kept.append(rotation)
+        if len(kept) == MAX_NEAR:
+            break
+    return np.stack(kept) if kept else np.zeros((0, 3, 3))
 
 
 Transform = tuple[np.ndarray, np.ndarray]  # (R, t): x -> R x + t
+Refined = tuple[np.ndarray, np.ndarray, bool]  # (R, t) and whether it fits: a symmetry
 
 
 def _group(found: list[Transform], fits) -> list[Transform]:
