@@ -227,7 +227,7 @@ def test_a_flange_that_only_a_notch_tells_apart_is_answered_at_the_right_turn():
     the one nearest the surface wins; without them, most answers are turned 18-71 degrees."""
     (flange,) = [r for r in load_gallery(SETTINGS.model.gallery)[0] if r.name == "kuka-link-7"]
     assert len(flange.symmetry["near"]) > 0
-    bare = {k: v for k, v in flange.symmetry.items() if k not in ("near", "refined_near")}
+    bare = {k: v for k, v in flange.symmetry.items() if k != "near"}
     mesh = pybullet_mesh("kuka_iiwa/meshes/link_7.obj")
     mapper = Mapper(SETTINGS.model.path, use_cuda=False)
     within = {}

@@ -183,7 +183,7 @@ DIFFERENT_DEG = 10.0  # poses this far apart (symmetry accounted for) are differ
 ALIKE = 0.9  # ... and fit alike when within this share of the best's fit x coverage
 MAX_ALTERNATIVES = 3
 NEAR_SOURCE = "near-symmetry"  # the hypothesis of a pose found by turning the best one
-NEAR_REFINED = 3  # turns about a nearly round axis refined: those nearest the surface
+NEAR_REFINED = 4  # turned poses refined: those nearest the surface before refining
 RESIDUAL_ALIKE = 1.15  # a turned pose this much farther from the surface is no alternative
 
 
@@ -965,17 +965,12 @@ class Search:
         centre = symmetry.centroid  # scene = R (N (m - c) + c) + t
         rotations = np.einsum("ij,njk->nik", best.rotation, symmetry.near)
         translations = best.translation + (centre - symmetry.near @ centre) @ best.rotation.T
-        # those found by refining at registration are refined; of the turns about a nearly
-        # round axis, the few nearest the surface before refining
-        known = symmetry.refined_near
-        model = np.einsum(
-            "nji,nsj->nsi", rotations[known:], self.refine_on[None] - translations[known:, None]
-        )
+        # the few turned poses nearest the surface before refining are refined
+        model = np.einsum("nji,nsj->nsi", rotations, self.refine_on[None] - translations[:, None])
         cut = 3 * self.settings.tolerance * entry.reference.scale
         distance, _ = surface_distance(entry.surface, model)
-        screened = np.argsort(np.minimum(distance, cut).mean(axis=1))[:NEAR_REFINED]
         turned = []
-        for k in [*range(known), *(known + screened)]:
+        for k in np.argsort(np.minimum(distance, cut).mean(axis=1))[:NEAR_REFINED]:
             candidate = Fit(best.row, rotations[k], translations[k], NEAR_SOURCE, best.view, 0, 0)
             self.refine(candidate)
             turned.append(candidate)

@@ -74,15 +74,11 @@ class Symmetry:
     # that only a notch tells apart, a shaft's end-for-end flip, a gear's tooth): poses the
     # answer is tried at as well, since a view may hardly tell them apart
     near: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
-    # the first this many of ``near`` were refined onto the part at registration; the rest are
-    # turns about a nearly round axis, every NEAR_TURN_DEG, to be screened before refining
-    refined_near: int = 0
 
     @classmethod
-    def none(cls, centroid: np.ndarray, near: np.ndarray | None = None, refined: int = 0):
+    def none(cls, centroid: np.ndarray, near: np.ndarray | None = None) -> Symmetry:
         near = np.zeros((0, 3, 3)) if near is None else near
-        centroid = np.asarray(centroid, np.float64)
-        return cls("none", centroid, np.eye(3)[None], near=near, refined_near=refined)
+        return cls("none", np.asarray(centroid, np.float64), np.eye(3)[None], near=near)
 
     def describe(self) -> dict:
         """The JSON description a reference shows (and the store keeps)."""
@@ -95,7 +91,6 @@ class Symmetry:
         described["centre"] = np.round(self.centroid, 9).tolist()
         if len(self.near):
             described["near"] = np.round(self.near, 6).tolist()
-            described["refined_near"] = self.refined_near
         return described
 
     @staticmethod
@@ -109,7 +104,6 @@ class Symmetry:
     def from_description(cls, described: dict, centroid: np.ndarray) -> Symmetry:
         centre = np.asarray(described.get("centre", centroid), np.float64)
         near = np.asarray(described.get("near", np.zeros((0, 3, 3))), np.float64).reshape(-1, 3, 3)
-        refined = int(described.get("refined_near", len(near)))
         if described.get("kind") == "revolution":
             axis = np.asarray(described["axis"], np.float64)
             rotations = [np.eye(3)]
@@ -122,9 +116,8 @@ class Symmetry:
                 centre,
                 np.asarray(described["rotations"], np.float64),
                 near=near,
-                refined_near=refined,
             )
-        return cls.none(centre, near, refined)
+        return cls.none(centre, near)
 
     def equivalent(self, rotation: np.ndarray) -> np.ndarray:
         """(G, 3, 3) rotations equivalent to ``rotation`` under the discrete part."""
@@ -332,12 +325,11 @@ def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> S
             found.append((rotation, translation))
     found = _group(found, fits)
     group = np.stack([r for r, _ in found])
-    refined_near = _distinct_near(nearly, group)
-    near = _distinct_near([*refined_near, *round_turns], group)
+    near = _distinct_near(nearly + round_turns, group)
     if len(found) == 1:
-        return Symmetry.none(centroid, near, len(refined_near))
+        return Symmetry.none(centroid, near)
     centre = _fixed_point(found[1:], centroid)
-    return Symmetry("discrete", centre, group, near=near, refined_near=len(refined_near))
+    return Symmetry("discrete", centre, group, near=near)
 
 
 def _distinct_near(nearly: list[np.ndarray], group: np.ndarray) -> np.ndarray:
