@@ -183,7 +183,7 @@ DIFFERENT_DEG = 10.0  # poses this far apart (symmetry accounted for) are differ
 ALIKE = 0.9  # ... and fit alike when within this share of the best's fit x coverage
 MAX_ALTERNATIVES = 3
 NEAR_SOURCE = "near-symmetry"  # the hypothesis of a pose found by turning the best one
-NEAR_REFINED = 4  # turned poses refined: those nearest the surface before refining
+SCREEN_ALIKE = 1.5  # a turned pose this much farther before refining is not refined
 RESIDUAL_ALIKE = 1.15  # a turned pose this much farther from the surface is no alternative
 
 
@@ -960,17 +960,24 @@ class Search:
         best = fits[0]
         entry = self.snapshot.entries[self.labels[best.row]]
         symmetry = entry.symmetry
-        if not best.refined or not len(symmetry.near):
+        if not best.refined or not len(symmetry.near) or not self.settings.near_refined:
             return fits
         centre = symmetry.centroid  # scene = R (N (m - c) + c) + t
         rotations = np.einsum("ij,njk->nik", best.rotation, symmetry.near)
         translations = best.translation + (centre - symmetry.near @ centre) @ best.rotation.T
-        # the few turned poses nearest the surface before refining are refined
-        model = np.einsum("nji,nsj->nsi", rotations, self.refine_on[None] - translations[:, None])
+        # screened first (the best pose among them): the few turned poses nearest the surface
+        # are refined, unless even they lie clearly farther from it than the best
+        poses = (
+            np.concatenate([best.rotation[None], rotations]),
+            np.concatenate([best.translation[None], translations]),
+        )
+        model = np.einsum("nji,nsj->nsi", poses[0], self.refine_on[None] - poses[1][:, None])
         cut = 3 * self.settings.tolerance * entry.reference.scale
         distance, _ = surface_distance(entry.surface, model)
+        screened = np.minimum(distance, cut).mean(axis=1)
+        order = np.argsort(screened[1:])[: self.settings.near_refined]
         turned = []
-        for k in np.argsort(np.minimum(distance, cut).mean(axis=1))[:NEAR_REFINED]:
+        for k in order[screened[1:][order] <= SCREEN_ALIKE * screened[0]]:
             candidate = Fit(best.row, rotations[k], translations[k], NEAR_SOURCE, best.view, 0, 0)
             self.refine(candidate)
             turned.append(candidate)
