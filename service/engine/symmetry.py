@@ -24,9 +24,16 @@ keep 0.84-0.94, or add 2-9 % far points. An absolute share (the former rule, 95 
 tolerance) missed every symmetry of a part whose own samples fit worse than that (a stud brick:
 74 %) and of a faceted ring.
 
+The rotations found are closed under composition (``_group``); a revolution's turns are held
+to ``REVOLUTION_SLACK`` times the tolerance (a faceted mesh's sag between facets).
+
 Among poses the symmetry makes equivalent (``R S`` with the translation that keeps the scene
 in place), ``canonical`` answers the one whose rotation is nearest the identity (the largest
 trace), so the same surface in the same place always gives the same matrix.
+
+``near`` keeps the turns that nearly fit (``NEAR`` of the leave-one-out share) but are no
+symmetry, and turns every ``NEAR_TURN_DEG`` about a nearly round axis: poses a view may hardly
+tell apart from the answer's, which the engine tries too (``Search.resolve_near``).
 """
 
 from __future__ import annotations
