@@ -27,6 +27,7 @@ import uvicorn
 from service.api.app import create_app
 from service.engine.mapping import file_sha256
 from service.engine.reference import Reference
+from service.gallery.gallery_file import load_gallery
 from service.settings import EngineSettings, LimitSettings, Settings
 from tests.backends import Location
 from tests.test_parsers import BROKEN_STL, LATIN1_STL
@@ -151,6 +152,20 @@ def test_the_store_is_seeded_from_the_shipped_gallery(api, seeded):
         assert item["num_points"] > 0 and item["scale"] > 0
     described = api.get(f"/references/{seeded[0]}")
     assert described.status_code == 200 and described.json()["name"] == seeded[0]
+
+
+def test_a_part_whose_turns_nearly_fit_is_registered_with_a_warning(api):
+    """The KUKA flange's points, registered as a cloud: turns about its axis nearly fit (a
+    notch tells them apart); the description lists them and the operator is told."""
+    (flange,) = [r for r in load_gallery(Settings().model.gallery)[0] if r.name == "kuka-link-7"]
+    body = {"name": "flange-copy", "points": np.asarray(flange.points).tolist()}
+    created = api.post("/references?self_check=false", json=body)
+    assert created.status_code == 201, created.text
+    answer = created.json()
+    assert len(answer["symmetry"]["near"]) > 0
+    (said,) = [w for w in answer["warnings"] if "nearly fit" in w]
+    assert "flange-copy" in said and "alternatives" in said
+    assert api.delete("/references/flange-copy").status_code == 204
 
 
 def test_register_replace_and_delete(api):

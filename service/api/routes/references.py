@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
+import numpy as np
 from fastapi import APIRouter, Query, Request, Response, status
 
 from service.api.auth import AdminAccess, ReadAccess
@@ -227,10 +228,20 @@ def warnings(reference: Reference, checks: list[dict] | None) -> list[str]:
                 f"{len(off)} of {len(checks)} renders were posed more than 5 degrees off (up to "
                 f"{worst:.0f}): poses of this part may be ambiguous from some sides"
             )
-    kind = (reference.symmetry or {}).get("kind", "none")
+    symmetry = reference.symmetry or {}
+    kind = symmetry.get("kind", "none")
     if kind != "none":
         said.append(
             f"{reference.name} has a {kind} symmetry: /align answers one canonical pose "
             "among the poses it makes equivalent"
+        )
+    near = np.asarray(symmetry.get("near", []), np.float64).reshape(-1, 3, 3)
+    if len(near):
+        cosines = np.clip((np.trace(near, axis1=1, axis2=2) - 1) / 2, -1, 1)
+        turns = ", ".join(f"{a:.0f}" for a in sorted(set(np.round(np.degrees(np.arccos(cosines))))))
+        said.append(
+            f"turns of {reference.name} by {turns} degrees nearly fit its own surface (only a "
+            "detail tells them apart): /align tries them and names those that fit alike as "
+            "alternatives; a view that does not show the detail may be answered as ambiguous"
         )
     return said
