@@ -233,3 +233,17 @@ def test_the_canonical_pose_is_one_matrix_for_all_equivalent_poses():
     assert all(angle_deg(s, spun[0]) < 1e-6 for s in spun)
     described = Symmetry.from_description(symmetry.describe(), np.zeros(3))
     assert described.kind == "discrete" and len(described.rotations) == 4
+
+
+@pytest.mark.parametrize("count", [3, 5, 8])
+def test_a_handful_of_points_has_a_surface_and_no_symmetry_claimed(count):
+    """Fewer points than a sample's neighbours (the tree names a missing one past the end),
+    and so few that almost any turn fits: registration still completes, claiming nothing."""
+    points = np.random.default_rng(count).normal(size=(count, 3))
+    normals = points / np.linalg.norm(points, axis=1, keepdims=True)
+    tree = cKDTree(points)
+    scale = radius(points)
+    surface = Surface.of(points, normals, DistanceField.of(points, scale, tree=tree), tree)
+    assert surface.neighbours.max() < count
+    found = find_symmetry(surface, scale, np.random.default_rng(0))
+    assert found.kind == "none"

@@ -42,7 +42,10 @@ class Surface:
     def of(
         cls, points: np.ndarray, normals: np.ndarray, field: DistanceField, tree: cKDTree
     ) -> Surface:
-        distances, neighbours = tree.query(points, k=NEIGHBOURS)
+        # a cloud of fewer points than NEIGHBOURS has that many neighbours a point (the tree
+        # would name a missing one by an index past the end)
+        count = min(NEIGHBOURS, len(points))
+        distances, neighbours = tree.query(points, k=list(range(1, count + 1)))
         spacing = float(np.median(distances[:, 1]))
         return cls(points, normals, field, neighbours.astype(np.intp), spacing)
 

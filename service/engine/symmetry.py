@@ -362,8 +362,10 @@ def _group(found: list[Transform], fits) -> list[Transform]:
     """The group the found symmetries generate (products that fit as well), then closed: a
     product of two symmetries is one, so where a product does not fit, one of its factors
     was a near miss (a notch the sample is too sparse to see for sure); the one in the most
-    such products is dropped until every product is in the set. The identity stays first."""
-    while len(found) <= MAX_GROUP:  # grow
+    such products is dropped until every product is in the set. The identity stays first.
+    More than ``MAX_GROUP`` rotations that fit (a handful of points, where any turn does) is no
+    part's group: the identity alone is kept."""
+    while True:  # grow
         rotations = np.stack([r for r, _ in found])
         products = np.einsum("aij,bjk->abik", rotations, rotations).reshape(-1, 3, 3)
         fresh = ~_near(products, rotations).any(axis=1)
@@ -376,6 +378,8 @@ def _group(found: list[Transform], fits) -> list[Transform]:
                 continue  # the same product reached twice this round
             if fits(*candidate):
                 found.append(candidate)
+                if len(found) > MAX_GROUP:
+                    return found[:1]
         if len(found) == count:
             break
     while True:  # close
