@@ -14,6 +14,7 @@ looking along +z, see ``evaluation.camera``), so the viewpoint of every view is 
 from __future__ import annotations
 
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,6 +23,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from evaluation.camera import DEFAULT_CAMERA, DEPTH_NOISE_SHARE, Camera, cast
+from service.engine.normalize import radius
 from service.engine.sampling import sample_surface
 
 VIEWPOINT = (0.0, 0.0, 0.0)  # the camera's position in its own frame
@@ -238,19 +240,22 @@ def surface_gap(points: np.ndarray, other: np.ndarray) -> float:
 
 
 def turned_off_surface(
-    mesh: trimesh.Trimesh, axis: np.ndarray, angle: float, samples: int = 4096
-) -> float:
-    """The share of the part's surface that a turn by ``angle`` (radians) about ``axis``
-    (through the surface centroid) moves farther than ``OFF_SURFACE`` of its radius from the
-    surface (a dense resample): about 0 for a symmetry, a few percent for a notch or a cross
-    hole that the turn moves, which a mean distance (``surface_gap``) hardly sees."""
+    mesh: trimesh.Trimesh, axis: np.ndarray, angles: Sequence[float], samples: int = 4096
+) -> np.ndarray:
+    """For each turn by one of ``angles`` (radians) about ``axis`` (through the surface
+    centroid), the share of the part's surface it moves farther than ``OFF_SURFACE`` of the
+    part's radius from the surface (a dense resample): about 0 for a symmetry, a few percent
+    for a notch or a cross hole that the turn moves, which a mean distance (``surface_gap``)
+    hardly sees."""
     points = sample_surface(mesh, samples, 1).astype(np.float64)
-    dense = sample_surface(mesh, 50 * samples, 2).astype(np.float64)
-    centre = surface_centroid(mesh)
-    scale = float(np.linalg.norm(points - points.mean(axis=0), axis=1).max())
-    rotation, shift = turn_about(axis, angle, centre)
-    distances, _ = cKDTree(dense).query(points @ rotation.T + shift)
-    return float(np.mean(distances > OFF_SURFACE * scale))
+    tree = cKDTree(sample_surface(mesh, 50 * samples, 2).astype(np.float64))
+    centre, scale = surface_centroid(mesh), radius(points)
+    shares = []
+    for angle in angles:
+        rotation, shift = turn_about(axis, angle, centre)
+        distances, _ = tree.query(points @ rotation.T + shift)
+        shares.append(np.mean(distances > OFF_SURFACE * scale))
+    return np.array(shares)
 
 
 def symmetry_axis(mesh: trimesh.Trimesh, order: int, samples: int = 4096) -> np.ndarray:

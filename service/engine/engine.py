@@ -110,8 +110,6 @@ class Entry:
     def of(cls, reference: Reference, blur: float) -> Entry:
         points = np.asarray(reference.points, dtype=np.float64)
         tree = cKDTree(points)
-        frame = reference.field_frame
-        distance_field = DistanceField(frame[:3], float(frame[3]), reference.field)
         visible = reference.visible()
         rng = np.random.default_rng(0)
         expected = np.empty((len(visible) + 1, EXPECTED), dtype=np.uint16)
@@ -124,12 +122,22 @@ class Entry:
             tree,
             cKDTree(reference.mapped),
             classifier_input(reference.view_grids, blur),
-            Surface.of(points, np.asarray(reference.normals, np.float64), distance_field, tree),
+            stored_surface(reference, tree),
             Views.of(points, visible),
             Symmetry.from_description(reference.symmetry, points.mean(axis=0)),
             expected,
             flatness(points),
         )
+
+
+def stored_surface(reference: Reference, tree: cKDTree | None = None) -> Surface:
+    """The surface a complete reference stores: its points, normals and distance field
+    (``tree``: a ``cKDTree`` of its points, if one is at hand)."""
+    points = np.asarray(reference.points, dtype=np.float64)
+    frame = reference.field_frame
+    distance_field = DistanceField(frame[:3], float(frame[3]), reference.field)
+    normals = np.asarray(reference.normals, np.float64)
+    return Surface.of(points, normals, distance_field, tree or cKDTree(points))
 
 
 @dataclass(frozen=True)
@@ -279,7 +287,7 @@ class Engine:
     def refind_symmetry(self, reference: Reference) -> Reference:
         """The reference with its symmetry found again by this version's rule, from its stored
         surface (points, normals, distance field), every other field as it was."""
-        surface = Entry.of(reference, self.settings.grid_blur).surface
+        surface = stored_surface(reference)
         symmetry = find_symmetry(surface, reference.scale, np.random.default_rng(0))
         return reference.with_(symmetry=symmetry.describe())
 
@@ -965,24 +973,21 @@ class Search:
         centre = symmetry.centroid  # scene = R (N (m - c) + c) + t
         rotations = np.einsum("ij,njk->nik", best.rotation, symmetry.near)
         translations = best.translation + (centre - symmetry.near @ centre) @ best.rotation.T
-        # screened first (the best pose among them): the few turned poses nearest the surface
-        # are refined, unless even they lie clearly farther from it than the best
-        poses = (
-            np.concatenate([best.rotation[None], rotations]),
-            np.concatenate([best.translation[None], translations]),
-        )
-        model = np.einsum("nji,nsj->nsi", poses[0], self.refine_on[None] - poses[1][:, None])
-        cut = 3 * self.settings.tolerance * entry.reference.scale
-        distance, _ = surface_distance(entry.surface, model)
-        screened = np.minimum(distance, cut).mean(axis=1)
-        order = np.argsort(screened[1:])[: self.settings.near_refined]
+        # screened first: the few turned poses nearest the surface are refined, unless even
+        # they lie clearly farther from it than the best
+        screened = self.residuals(entry, rotations, translations)
+        (own,) = self.residuals(entry, best.rotation[None], best.translation[None])
+        order = np.argsort(screened)[: self.settings.near_refined]
         turned = []
-        for k in order[screened[1:][order] <= SCREEN_ALIKE * screened[0]]:
+        for k in order[screened[order] <= SCREEN_ALIKE * own]:
             candidate = Fit(best.row, rotations[k], translations[k], NEAR_SOURCE, best.view, 0, 0)
             self.refine(candidate)
             turned.append(candidate)
         alike = [best] + [t for t in turned if t.score >= ALIKE * best.score]
-        residuals = [self.residual(entry, f) for f in alike]
+        residuals = [own] + [
+            float(self.residuals(entry, t.rotation[None], t.translation[None])[0])
+            for t in alike[1:]
+        ]
         chosen = int(np.argmin(residuals))
         close = [
             f
@@ -991,14 +996,13 @@ class Search:
         ]
         return [alike[chosen], *close, *fits[1:]]
 
-    def residual(self, entry: Entry, candidate: Fit) -> float:
-        """Mean distance of the refinement's points to the surface at the pose, each cut at
-        three tolerances, over the part's scale."""
+    def residuals(self, entry: Entry, rotations: np.ndarray, translations: np.ndarray):
+        """(H,) mean distance of the refinement's points to the surface at each of H poses,
+        each cut at three tolerances, over the part's scale."""
         scale = entry.reference.scale
-        cut = 3 * self.settings.tolerance * scale
-        model = (self.refine_on - candidate.translation) @ candidate.rotation
+        model = np.einsum("hji,hsj->hsi", rotations, self.refine_on[None] - translations[:, None])
         distance, _ = surface_distance(entry.surface, model)
-        return float(np.minimum(distance, cut).mean() / scale)
+        return np.minimum(distance, 3 * self.settings.tolerance * scale).mean(axis=1) / scale
 
     def candidate_fits(self, fits: list[Fit], scores: np.ndarray) -> list[CandidateFit]:
         """One line a candidate, best first: its best pose's mean distance from the observed

@@ -46,7 +46,7 @@ from scipy.spatial.transform import Rotation
 
 from service.engine.icp import Surface, icp, rotation_vector
 from service.engine.principal_axes import principal_axes
-from service.engine.verification import PATCH_SPACINGS, surface_distance
+from service.engine.verification import patch_distance, surface_distance
 
 RULE = 3  # the rule's version a description records: a stored older one is found again
 TOLERANCE = 0.015  # share of the scale
@@ -185,21 +185,22 @@ class _SelfFit:
     def far(self) -> float:
         return _far(self.distance, self.tolerance)
 
-    def fits(
-        self, surface: Surface, points: np.ndarray, rotation, translation, slack: float = 1.0
-    ) -> bool:
-        """Whether ``points`` of the reference moved by (R, t) lie on it like its own, within
-        ``slack`` times the tolerance."""
-        distance, _ = surface_distance(surface, points @ rotation.T + translation)
+    def moved(self, surface: Surface, points: np.ndarray, rotation, translation) -> np.ndarray:
+        """Distance of each of ``points`` moved by (R, t) to the reference's surface."""
+        return surface_distance(surface, points @ rotation.T + translation)[0]
+
+    def fits(self, distance: np.ndarray, slack: float = 1.0) -> bool:
+        """Whether points at these distances (``moved``) lie on the surface like the
+        reference's own, within ``slack`` times the tolerance."""
         tolerance = slack * self.tolerance
         within = float(np.mean(distance < tolerance))
         own = float(np.mean(self.distance < tolerance))
         far = _far(distance, self.tolerance)
         return within >= SHARE * own and far <= FAR_RATIO * self.far + FAR_EXTRA
 
-    def nearly(self, surface: Surface, points: np.ndarray, rotation, translation) -> bool:
-        """Whether the moved points keep ``NEAR`` of the share the reference's own keep."""
-        distance, _ = surface_distance(surface, points @ rotation.T + translation)
+    def nearly(self, distance: np.ndarray) -> bool:
+        """Whether points at these distances keep ``NEAR`` of the share the reference's own
+        keep within the tolerance."""
         own = float(np.mean(self.distance < self.tolerance))
         return float(np.mean(distance < self.tolerance)) >= NEAR * own
 
@@ -209,16 +210,12 @@ def _far(distance: np.ndarray, tolerance: float) -> float:
 
 
 def _left_out_distance(surface: Surface) -> np.ndarray:
-    """Each sample's distance to the surface the other samples describe (the tangent plane at
-    the nearest other one, within its patch, as ``surface_distance`` measures)."""
+    """Each sample's distance to the surface the other samples describe (the tangent patch of
+    the nearest other one, as ``surface_distance`` measures)."""
     points, others = surface.points, surface.neighbours[:, 1:]
     offsets = points[:, None, :] - points[others]
     closest = np.argmin(np.einsum("nki,nki->nk", offsets, offsets), axis=1)
-    nearest = others[np.arange(len(points)), closest]
-    offset = points - points[nearest]
-    along = np.einsum("ni,ni->n", offset, surface.normals[nearest])
-    across = np.sqrt(np.maximum(np.einsum("ni,ni->n", offset, offset) - along**2, 0.0))
-    return np.sqrt(along**2 + np.maximum(across - PATCH_SPACINGS * surface.spacing, 0.0) ** 2)
+    return patch_distance(surface, points, others[np.arange(len(points)), closest])
 
 
 def _tolerance(surface: Surface, scale: float) -> float:
@@ -254,7 +251,7 @@ def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> S
     quick_share = SHARE * (1 - own.far) - QUICK_SLACK
 
     def fits(rotation: np.ndarray, translation: np.ndarray, slack: float = 1.0) -> bool:
-        return own.fits(surface, points, rotation, translation, slack)
+        return own.fits(own.moved(surface, points, rotation, translation), slack)
 
     def refined(
         start: np.ndarray, centre: np.ndarray
@@ -274,9 +271,10 @@ def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> S
         drift = np.linalg.norm(rotation @ centroid + translation - centroid)
         if drift > DRIFT * scale or _angle_deg(rotation, np.eye(3)) < SAME_DEG:
             return None
-        if fits(rotation, translation):
+        distance = own.moved(surface, points, rotation, translation)
+        if own.fits(distance):
             return rotation, translation, True
-        if own.nearly(surface, points, rotation, translation):
+        if own.nearly(distance):
             return rotation, translation, False
         return None
 
@@ -307,7 +305,7 @@ def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> S
         step = np.radians(NEAR_TURN_DEG)
         for j in range(1, int(round(2 * np.pi / step))):
             turn = rotation_vector(axis * step * j)
-            if own.nearly(surface, points, turn, _about(turn, centre)):
+            if own.nearly(own.moved(surface, points, turn, _about(turn, centre))):
                 round_turns.append(turn)
 
     starts = []
@@ -373,8 +371,7 @@ def _group(found: list[Transform], fits) -> list[Transform]:
         for index in np.flatnonzero(fresh):
             (r1, t1), (r2, t2) = found[index // count], found[index % count]
             candidate = (r1 @ r2, r1 @ t2 + t1)
-            added = np.stack([r for r, _ in found[count:]]) if len(found) > count else None
-            if added is not None and _near(candidate[0][None], added).any():
+            if any(_angle_deg(candidate[0], r) < SAME_DEG for r, _ in found[count:]):
                 continue  # the same product reached twice this round
             if fits(*candidate):
                 found.append(candidate)

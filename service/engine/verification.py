@@ -69,12 +69,18 @@ def surface_distance(
     neighbours or not). A point on the surface lies up to about two spacings from the nearest
     sample of a random sample, so within ``PATCH_SPACINGS`` spacings only its distance to the
     tangent plane counts."""
-    patch = PATCH_SPACINGS * surface.spacing
     nearest = surface.nearest(model_points) if corrected else surface.field.lookup(model_points)
+    return patch_distance(surface, model_points, nearest), nearest
+
+
+def patch_distance(surface: Surface, model_points: np.ndarray, nearest: np.ndarray) -> np.ndarray:
+    """Distance from each point to the tangent patch of its surface sample ``nearest``: to the
+    tangent plane within ``PATCH_SPACINGS`` spacings of the sample, beyond that also across."""
+    patch = PATCH_SPACINGS * surface.spacing
     offset = model_points - surface.points[nearest]
     along = np.einsum("...i,...i->...", offset, surface.normals[nearest])
     across = np.sqrt(np.maximum(np.einsum("...i,...i->...", offset, offset) - along**2, 0.0))
-    return np.sqrt(along**2 + np.maximum(across - patch, 0.0) ** 2), nearest
+    return np.sqrt(along**2 + np.maximum(across - patch, 0.0) ** 2)
 
 
 def fit(
