@@ -55,12 +55,18 @@ class DistanceField:
     def lookup(self, points: np.ndarray) -> np.ndarray:
         """Index of the reference point nearest to each of ``points`` (..., 3), model frame."""
         cells = np.rint((points - self.origin) / self.voxel).astype(np.intp)
-        shape = self.nearest.shape
-        np.clip(cells[..., 0], 0, shape[0] - 1, out=cells[..., 0])
-        np.clip(cells[..., 1], 0, shape[1] - 1, out=cells[..., 1])
-        np.clip(cells[..., 2], 0, shape[2] - 1, out=cells[..., 2])
-        flat = (cells[..., 0] * shape[1] + cells[..., 1]) * shape[2] + cells[..., 2]
+        np.clip(cells, 0, self._last, out=cells)  # past the edge: the edge voxel
+        flat = cells @ self._strides
         return self.nearest.reshape(-1)[flat]
+
+    @property
+    def _last(self) -> np.ndarray:
+        return np.array(self.nearest.shape, dtype=np.intp) - 1
+
+    @property
+    def _strides(self) -> np.ndarray:
+        shape = self.nearest.shape
+        return np.array([shape[1] * shape[2], shape[2], 1], dtype=np.intp)
 
     @property
     def nbytes(self) -> int:

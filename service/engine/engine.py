@@ -1000,7 +1000,7 @@ class Search:
         """(H,) mean distance of the refinement's points to the surface at each of H poses,
         each cut at three tolerances, over the part's scale."""
         scale = entry.reference.scale
-        model = np.einsum("hji,hsj->hsi", rotations, self.refine_on[None] - translations[:, None])
+        model = np.matmul(self.refine_on[None] - translations[:, None], rotations)
         distance, _ = surface_distance(entry.surface, model)
         return np.minimum(distance, 3 * self.settings.tolerance * scale).mean(axis=1) / scale
 

@@ -50,15 +50,20 @@ class Occupancy:
         self.shape = cells.max(axis=0) + 3
         grid = np.zeros(self.shape, dtype=bool)
         grid[cells[:, 0], cells[:, 1], cells[:, 2]] = True
-        self.grid = binary_dilation(grid, structure=np.ones((3, 3, 3), dtype=bool))
+        grid = binary_dilation(grid, structure=np.ones((3, 3, 3), dtype=bool))
+        # two empty voxels on every side, one after dilating; the outermost layer is kept
+        # empty (rounding may put the lowest point one voxel lower), so that a point past the
+        # grid, clipped onto it, is near nothing
+        grid[[0, -1]] = grid[:, [0, -1]] = grid[:, :, [0, -1]] = False
+        self.grid = grid.reshape(-1)
+        self.last = self.shape - 1
+        self.strides = np.array([self.shape[1] * self.shape[2], self.shape[2], 1], dtype=np.intp)
 
     def near(self, points: np.ndarray) -> np.ndarray:
         """Whether an observed point lies within about a voxel of each of ``points`` (..., 3)."""
         cells = np.floor((points - self.low) / self.voxel).astype(np.intp)
-        inside = np.all((cells >= 0) & (cells < self.shape), axis=-1)
-        for k in range(3):
-            np.clip(cells[..., k], 0, self.shape[k] - 1, out=cells[..., k])
-        return self.grid[cells[..., 0], cells[..., 1], cells[..., 2]] & inside
+        np.clip(cells, 0, self.last, out=cells)
+        return self.grid[cells @ self.strides]
 
 
 def surface_distance(
@@ -93,7 +98,7 @@ def fit(
 ) -> np.ndarray:
     """(H,) share of ``observed`` (S, 3) within ``tolerance`` of the surface, for each of H poses
     ``scene = R @ model + t``."""
-    model = np.einsum("hji,hsj->hsi", rotations, observed[None] - translations[:, None])
+    model = np.matmul(observed[None] - translations[:, None], rotations)  # R^T (q - t)
     distance, _ = surface_distance(surface, model, corrected)
     return (distance < tolerance).mean(axis=1)
 
@@ -103,5 +108,5 @@ def coverage(
 ) -> np.ndarray:
     """(H,) share of the expected-visible reference points ``expected`` (H, M, 3) that have an
     observed point near them at each pose."""
-    placed = np.einsum("hij,hmj->hmi", rotations, expected) + translations[:, None]
+    placed = np.matmul(expected, rotations.transpose(0, 2, 1)) + translations[:, None]
     return occupancy.near(placed).mean(axis=1)
