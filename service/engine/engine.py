@@ -516,7 +516,8 @@ class Engine:
         search = Search(self, snapshot, observed, observed_mapped, spacing, query, clock)
         chosen = query.sources
         whole = [s for s in chosen if s == "principal-axes"]
-        fits = search.run({row: whole for row in shortlist}, query.refine, WHOLE_REFINED)
+        first = int(shortlist[0]) if len(shortlist) else None
+        fits = search.run({row: whole for row in shortlist}, query.refine, WHOLE_REFINED, first)
         if "views" in chosen and not excellent(fits, settings):
             # 3b-6. Single views: the parts whose rendered views' grids look most like the
             # observation's, and eq. (4)'s; hypotheses from every rendered view of each.
@@ -777,6 +778,8 @@ WHOLE_REFINED = 2  # hypotheses refined in each whole-part pass
 ENOUGH_BEHIND = 0.8  # a hypothesis this far below an excellent refined one is not refined
 FAR_BELOW = 0.5  # nor one below this share of the best hypothesis before refining
 RESCUE_BELOW = 0.7  # "fits well" for settings.rescued_parts: fit x coverage
+RESCUE_EACH = 2  # hypotheses refined of each rescued part
+FIRST_REFINED = 1  # hypotheses of eq. (4)'s first choice refined in any case
 
 
 class Search:
@@ -798,9 +801,12 @@ class Search:
         # "is an observed point near here", at the tolerance or the observation's own spacing
         self.occupancy = Occupancy.around(observed, settings.tolerance * radius(observed), spacing)
 
-    def run(self, planned: dict[int, list[str]], refine: bool, budget: int) -> list[Fit]:
+    def run(
+        self, planned: dict[int, list[str]], refine: bool, budget: int, first: int | None = None
+    ) -> list[Fit]:
         """Verified fits of every candidate row from its planned sources; the best ``budget``
-        refined. Returns each row's best fit, and every refined one."""
+        refined, and the best of row ``first`` (eq. (4)'s first choice) in any case. Returns
+        each row's best fit, and every refined one."""
         settings = self.settings
         fits: list[Fit] = []
         for row, chosen in planned.items():
@@ -816,7 +822,7 @@ class Search:
             return []
         fits.sort(key=lambda f: -f.score)
         if refine:
-            self.refine_best_first(fits, budget)
+            self.refine_best_first(fits, budget, first)
             self.clock.lap("refine")
         best: dict[int, Fit] = {}
         for candidate in sorted(fits, key=lambda f: -f.score):
@@ -838,7 +844,7 @@ class Search:
         covered = coverage(expected, made.rotations, made.translations, self.occupancy)
         return np.argsort(-(fits_ * covered), kind="stable")
 
-    def refine_best_first(self, fits: list[Fit], budget: int) -> None:
+    def refine_best_first(self, fits: list[Fit], budget: int, first: int | None = None) -> None:
         """Refine the best ``budget`` hypotheses (at most two a candidate), best first, leaving
         out those far below the best before refining; stop once one is excellent and the next
         looks clearly worse than it. If none then fits well (``RESCUE_BELOW``), the best two
@@ -861,20 +867,35 @@ class Search:
             per_row[candidate.row] = per_row.get(candidate.row, 0) + 1
             self.refine(candidate)
             refined.append(candidate)
+        if first is not None and first not in per_row:
+            # the part eq. (4) likes best, left out because another part's pose verified
+            # better before refining: its best pose is refined too. Two parts of nearly one
+            # shape (under noise) are told apart by the right one's refined pose, which
+            # then fits better than the wrong one's
+            for mine in [f for f in fits if f.row == first][:FIRST_REFINED]:
+                per_row[first] = per_row.get(first, 0) + 1
+                self.refine(mine)
+                refined.append(mine)
         if not settings.rescued_parts:
             return
         best = max((f.score for f in refined), default=0.0)
         rescued: dict[int, int] = {}
+        tried: list[Fit] = []
         for candidate in fits:  # nothing fits well: each next part's best get their chance
             if best >= RESCUE_BELOW:
                 break
-            if candidate.row in per_row or rescued.get(candidate.row, 0) == 2:
+            if candidate.row in per_row or rescued.get(candidate.row, 0) == RESCUE_EACH:
                 continue
             if candidate.row not in rescued and len(rescued) == settings.rescued_parts:
                 continue
             rescued[candidate.row] = rescued.get(candidate.row, 0) + 1
-            self.refine(candidate)
+            self.refine(candidate, iterations=max(1, settings.icp_iterations // 2))
+            tried.append(candidate)
             best = max(best, candidate.score)
+        # a rescued pose was refined on half the budget; the one that now fits best gets the
+        # rest, if it beats every fully refined one
+        if tried and max(f.score for f in tried) > max((f.score for f in refined), default=0.0):
+            self.refine(max(tried, key=lambda f: f.score))
 
     def hypothesise(self, entry: Entry, chosen: list[str]) -> Hypotheses:
         settings = self.settings
@@ -937,8 +958,9 @@ class Search:
             for h in range(len(made))
         ]
 
-    def refine(self, candidate: Fit) -> None:
-        """Point-to-plane ICP from the fit's pose, then verified again on more points."""
+    def refine(self, candidate: Fit, iterations: int | None = None) -> None:
+        """Point-to-plane ICP from the fit's pose (``iterations``: the setting's unless
+        given), then verified again on more points."""
         settings = self.settings
         entry = self.snapshot.entries[self.labels[candidate.row]]
         scale = entry.reference.scale
@@ -949,7 +971,7 @@ class Search:
             candidate.translation,
             noise=0.25 * settings.tolerance * scale,
             gate=5 * settings.tolerance * scale,
-            iterations=settings.icp_iterations,
+            iterations=iterations or settings.icp_iterations,
         )
         made = Hypotheses(
             rotation[None], translation[None], (candidate.source,), np.array([candidate.view])

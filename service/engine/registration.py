@@ -64,8 +64,9 @@ def ransac(
     Samples are solved ``chunk`` at a time and scored on ``score_pairs`` random pairs; it stops
     after ``iterations`` samples, or earlier once the best inlier share ``w`` so far says that
     ``log(1 - confidence) / log(1 - w^3)`` samples would have drawn an all-inlier one (the
-    adaptive termination of Hartley and Zisserman, Alg. 4.5). The winner is re-fitted on its
-    inliers among all pairs. Returns the rotation, the translation and the inlier mask.
+    adaptive termination of Hartley and Zisserman, Alg. 4.5), and after the first chunk when no
+    scored pair agrees with any of its samples. The winner is re-fitted on its inliers among all
+    pairs. Returns the rotation, the translation and the inlier mask.
     """
     count = len(model)
     scored = rng.choice(count, size=min(count, score_pairs), replace=False)
@@ -81,9 +82,9 @@ def ransac(
         if inliers[top] > best_inliers:
             best, best_inliers = (rotations[top], translations[top]), int(inliers[top])
         share = best_inliers / len(scored)
-        if share >= 1 or drawn >= np.log(1 - confidence) / np.log(
-            1 - min(max(share, 1e-6), 0.999) ** 3
-        ):
+        if share == 0:  # not one scored pair agrees with any sample: nothing to find
+            break
+        if share >= 1 or drawn >= np.log(1 - confidence) / np.log1p(-(min(share, 0.999) ** 3)):
             break
     rotation, translation = best
     mask = ((model @ rotation.T + translation - scene) ** 2).sum(axis=1) < threshold**2
