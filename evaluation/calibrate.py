@@ -40,7 +40,9 @@ from service.settings import MODELS_DIR
 from training.objects import load_manifest, load_object_meshes
 
 RIDGE = 1e-2  # L2 weight on the standardised features' weights
-PRECISION = 0.99  # the share of accepted answers that must be right, at the default threshold
+# the share of accepted answers that must be right on the fitted cases, at the default threshold:
+# above the 99 % that parts never fitted on must reach (at 0.99 the held-out check fell to 97 %)
+PRECISION = 0.995
 
 
 def cases_of(meshes: dict, scales: dict[str, float], per_object: int, seed: int) -> list[Case]:
