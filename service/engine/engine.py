@@ -525,7 +525,7 @@ class Engine:
             rows += [row for row in shortlist if row not in rows]
             clock.lap("classify")
             planned = {row: ["views", *(whole if row not in shortlist else [])] for row in rows}
-            fits += search.run(planned, query.refine, settings.refine_best)
+            fits += search.run(planned, query.refine, settings.refine_best, rescue=True)
         paired = [s for s in chosen if s in ("mapped", "paper")]
         if paired and not excellent(fits, settings):
             # 4-6 again with the mapped pairs: what the learned mapping pairs, solved.
@@ -802,11 +802,17 @@ class Search:
         self.occupancy = Occupancy.around(observed, settings.tolerance * radius(observed), spacing)
 
     def run(
-        self, planned: dict[int, list[str]], refine: bool, budget: int, first: int | None = None
+        self,
+        planned: dict[int, list[str]],
+        refine: bool,
+        budget: int,
+        first: int | None = None,
+        rescue: bool = False,
     ) -> list[Fit]:
         """Verified fits of every candidate row from its planned sources; the best ``budget``
-        refined, and the best of row ``first`` (eq. (4)'s first choice) in any case. Returns
-        each row's best fit, and every refined one."""
+        refined, and the best of row ``first`` (eq. (4)'s first choice) in any case, and with
+        ``rescue`` more parts' when none fits well. Returns each row's best fit, and every
+        refined one."""
         settings = self.settings
         fits: list[Fit] = []
         for row, chosen in planned.items():
@@ -822,7 +828,7 @@ class Search:
             return []
         fits.sort(key=lambda f: -f.score)
         if refine:
-            self.refine_best_first(fits, budget, first)
+            self.refine_best_first(fits, budget, first, rescue)
             self.clock.lap("refine")
         best: dict[int, Fit] = {}
         for candidate in sorted(fits, key=lambda f: -f.score):
@@ -844,14 +850,18 @@ class Search:
         covered = coverage(expected, made.rotations, made.translations, self.occupancy)
         return np.argsort(-(fits_ * covered), kind="stable")
 
-    def refine_best_first(self, fits: list[Fit], budget: int, first: int | None = None) -> None:
+    def refine_best_first(
+        self, fits: list[Fit], budget: int, first: int | None = None, rescue: bool = False
+    ) -> None:
         """Refine the best ``budget`` hypotheses (at most two a candidate), best first, leaving
         out those far below the best before refining; stop once one is excellent and the next
-        looks clearly worse than it. If none then fits well (``RESCUE_BELOW``), the best two
-        hypotheses of each next part (up to ``settings.rescued_parts`` parts) are refined too,
-        until one does: a part's right pose may verify worse than another part's before
-        refinement (a single view seen from an unlucky side), and a part told alone then
-        finds it."""
+        looks clearly worse than it. With ``rescue`` (the single-view pass), if none then fits
+        well (``RESCUE_BELOW``), the best two hypotheses of each next part (up to
+        ``settings.rescued_parts`` parts) are refined too, until one does: a part's right pose
+        may verify worse than another part's before refinement (a single view seen from an
+        unlucky side), and a part told alone then finds it. Not in the whole-part pass, whose
+        candidates are eq. (4)'s own few: there a rescued part that fits as poorly as the
+        first choice's refined pose only takes its place (a full cloud of random-125)."""
         settings = self.settings
         per_row: dict[int, int] = {}
         refined: list[Fit] = []
@@ -876,7 +886,7 @@ class Search:
                 per_row[first] = per_row.get(first, 0) + 1
                 self.refine(mine)
                 refined.append(mine)
-        if not settings.rescued_parts:
+        if not rescue or not settings.rescued_parts:
             return
         best = max((f.score for f in refined), default=0.0)
         rescued: dict[int, int] = {}
