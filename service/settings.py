@@ -50,7 +50,7 @@ class EngineSettings(BaseModel):
     coverage_points: int = Field(64, ge=16)  # expected-visible points in the cheap check
     excellent: float = Field(0.9, gt=0, le=1)  # fit x coverage that ends the search early
     # the confidence of a "match" (a request's min_confidence overrides); default: the
-    # calibration's, the lowest at which 99 % of the matches it was fitted on were right
+    # calibration's, the lowest at which 99.5 % of the matches it was fitted on were right
     accept: float | None = Field(None, ge=0, le=1)
     reject_below: float = Field(0.2, ge=0, le=1)  # below it "no_match", else "uncertain"
     refine_best: int = Field(4, ge=1)  # hypotheses refined with ICP (at most 2 a part)

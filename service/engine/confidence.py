@@ -15,7 +15,7 @@ Its weights are fitted on the evaluation's cases of the objects the model was tr
 checked on parts it never saw (``python -m evaluation.calibrate``), and shipped beside the model
 as ``confidence.json``. The verdict follows: ``match`` at or above the acceptance threshold
 (the request's ``min_confidence``, else the setting ``engine.accept``, else the calibration's
-own: the lowest at which 99 % of the accepted answers it was fitted on were right),
+own: the lowest at which 99.5 % of the accepted answers it was fitted on were right),
 ``no_match`` below ``reject_below``, ``uncertain`` between; every verdict but ``match`` says
 why.
 """
