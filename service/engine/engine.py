@@ -512,11 +512,12 @@ class Engine:
         shortlist = shortlist[: query.top_k or settings.top_k]
         clock.lap("classify")
 
-        # 4-6. The whole part: hypotheses from its principal axes, verified, the best refined.
+        # 4-6. The whole part: hypotheses from its principal axes, verified, the best refined
+        # (and in each pass the best of eq. (4)'s first choice).
         search = Search(self, snapshot, observed, observed_mapped, spacing, query, clock)
         chosen = query.sources
         whole = [s for s in chosen if s == "principal-axes"]
-        first = int(shortlist[0]) if len(shortlist) else None
+        first = self._sure_first(scores, plausible)
         fits = search.run({row: whole for row in shortlist}, query.refine, WHOLE_REFINED, first)
         if "views" in chosen and not excellent(fits, settings):
             # 3b-6. Single views: the parts whose rendered views' grids look most like the
@@ -525,7 +526,7 @@ class Engine:
             rows += [row for row in shortlist if row not in rows]
             clock.lap("classify")
             planned = {row: ["views", *(whole if row not in shortlist else [])] for row in rows}
-            fits += search.run(planned, query.refine, settings.refine_best, rescue=True)
+            fits += search.run(planned, query.refine, settings.refine_best, first, rescue=True)
         paired = [s for s in chosen if s in ("mapped", "paper")]
         if paired and not excellent(fits, settings):
             # 4-6 again with the mapped pairs: what the learned mapping pairs, solved.
@@ -587,6 +588,16 @@ class Engine:
             size_ratio=size / entry.reference.scale,
             points=len(scene),
         )
+
+    def _sure_first(self, scores: np.ndarray, plausible: np.ndarray) -> int | None:
+        """Eq. (4)'s first choice among the ``plausible`` rows when it is sure of it (its score
+        ``FIRST_LEAD`` times the next one's), else None. Full clouds mostly: eq. (4) learned
+        the parts' full views, and on one camera's view its scores lie close together."""
+        if not len(plausible):
+            return None
+        ranked = plausible[np.argsort(-scores[plausible], kind="stable")]
+        runner_up = float(scores[ranked[1]]) if len(ranked) > 1 else 0.0
+        return int(ranked[0]) if scores[ranked[0]] >= FIRST_LEAD * runner_up else None
 
     def _nearest_views(
         self,
@@ -779,7 +790,8 @@ ENOUGH_BEHIND = 0.8  # a hypothesis this far below an excellent refined one is n
 FAR_BELOW = 0.5  # nor one below this share of the best hypothesis before refining
 RESCUE_BELOW = 0.7  # "fits well" for settings.rescued_parts: fit x coverage
 RESCUE_EACH = 2  # hypotheses refined of each rescued part
-FIRST_REFINED = 1  # hypotheses of eq. (4)'s first choice refined in any case
+FIRST_REFINED = 1  # hypotheses of eq. (4)'s first choice refined in any case ...
+FIRST_LEAD = 2.0  # ... when its score is this many times the next part's
 
 
 class Search:
@@ -879,9 +891,10 @@ class Search:
             refined.append(candidate)
         if first is not None and first not in per_row:
             # the part eq. (4) likes best, left out because another part's pose verified
-            # better before refining: its best pose is refined too. Two parts of nearly one
-            # shape (under noise) are told apart by the right one's refined pose, which
-            # then fits better than the wrong one's
+            # better before refining: its best pose is refined too, in this pass's sources.
+            # Two parts of nearly one shape (under noise) are told apart by the right one's
+            # refined pose, which then fits better than the wrong one's (both noisy clouds of
+            # random-250: one needed the principal axes' pose, the other a rendered view's)
             for mine in [f for f in fits if f.row == first][:FIRST_REFINED]:
                 per_row[first] = per_row.get(first, 0) + 1
                 self.refine(mine)
