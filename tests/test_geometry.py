@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from service.engine.alignment import alignment_error
+from service.engine.alignment import alignment_error, orthonormal
 from service.engine.classifier import LinearClassifier, classifier_input
 from service.engine.distance_field import DistanceField
 from service.engine.grid import GRID_SIZE, grid
@@ -146,3 +146,11 @@ def test_a_gallery_of_one_reference_with_one_view_fits():
     assert np.isfinite(classifier.weights).all() and classifier.scores(
         np.zeros((64, 64))
     ).shape == (1,)
+
+
+def test_an_answered_rotation_is_orthonormal_to_double_precision():
+    rotation = Rotation.random(random_state=3).as_matrix()
+    drifted = (rotation.astype(np.float32) @ rotation.T.astype(np.float32) @ rotation) * 1.000001
+    fixed = orthonormal(drifted)
+    np.testing.assert_allclose(fixed @ fixed.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(fixed) > 0 and np.abs(fixed - rotation).max() < 1e-5

@@ -16,7 +16,7 @@ from service.engine.normals import estimate_normals, orient_by_views
 from service.engine.sampling import sample_surface_faces
 from service.engine.symmetry import Symmetry, _group, find_symmetry
 from service.engine.verification import Occupancy, coverage, fit
-from service.engine.views import Views, directions, render, splat_visible
+from service.engine.views import Views, cloud_spacing, directions, render, splat_visible
 from service.engine.visibility import visible_points
 from tests.conftest import pybullet_mesh
 
@@ -116,6 +116,12 @@ def test_a_cube_seen_along_an_axis_shows_one_face():
         assert np.mean(seen[top]) > 0.97  # the face towards the camera
         assert np.mean(seen[~top]) < 0.07  # the sides face away, the bottom is hidden (but
         # the sides' points next to the top edge, within the test's depth tolerance)
+    # a cloud registered without its mesh, in a depth buffer of its own points: coarser, so
+    # more of the sides (seen edge-on) pass, but the bottom stays hidden
+    seen = splat_visible(points, points, camera, cloud_spacing(points))
+    top = cube.face_normals[faces][:, 2] > 0.99
+    bottom = cube.face_normals[faces][:, 2] < -0.99
+    assert np.mean(seen[top]) > 0.97 and np.mean(seen[bottom]) < 0.05
 
 
 def test_a_point_behind_another_is_hidden():

@@ -23,3 +23,13 @@ def alignment_error(
     """Mean distance from each scene point to the nearest reference point at the pose."""
     distance, _ = reference_tree.query(to_model_frame(scene, rotation, translation), k=1)
     return float(distance.mean())
+
+
+def orthonormal(rotation: np.ndarray) -> np.ndarray:
+    """The rotation nearest ``rotation`` (SVD): what an answer carries. Poses composed in
+    float32 (a rendered view's frame) and refined step by step drift from orthonormal by a
+    few 1e-7, which a client that checks R R^T = I to 1e-6 sees."""
+    u, _, vt = np.linalg.svd(np.asarray(rotation, dtype=np.float64))
+    if np.linalg.det(u @ vt) < 0:
+        u[:, -1] = -u[:, -1]
+    return u @ vt

@@ -44,6 +44,7 @@ from itertools import permutations, product
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from service.engine.alignment import orthonormal
 from service.engine.icp import Surface, icp, rotation_vector
 from service.engine.principal_axes import principal_axes
 from service.engine.verification import patch_distance, surface_distance
@@ -133,13 +134,14 @@ class Symmetry:
     def canonical(
         self, rotation: np.ndarray, translation: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The equivalent pose whose rotation is nearest the identity."""
+        """The equivalent pose whose rotation is nearest the identity, made exactly orthonormal
+        (the stored turns and the poses composed with them carry float32's rounding)."""
         if self.kind == "none":
-            return rotation, translation
+            return orthonormal(rotation), translation
         choices = self.equivalent(rotation)
         if self.kind == "revolution":  # turn each about the axis to its best angle
             choices = np.stack([c @ _best_turn(c, self.axis) for c in choices])
-        best = choices[int(np.argmax(np.trace(choices, axis1=1, axis2=2)))]
+        best = orthonormal(choices[int(np.argmax(np.trace(choices, axis1=1, axis2=2)))])
         # scene = R m + t = R' m' + t' with m' = S^T (m - c) + c, S = R^T R'
         return best, translation + (rotation - best) @ self.centroid
 
