@@ -9,7 +9,8 @@ shipped settings) always runs first. Every variant answers the same cases of the
 families (``--families``; default the full clouds, single views, table scenes, foreign parts and
 junk) on the evaluation's gallery (the shipped references, the unseen parts registered at run
 time, the foreign parts kept out: ``evaluation.evaluate_mapping.prepare_engine``), in this
-process, one case at a time, told the viewpoint where the case has one. The references are
+process, one case at a time, told the viewpoint where the case has one (never, with
+``--no-viewpoint``). The references are
 computed once: the settings changed here only steer the search (which hypotheses are verified,
 screened and refined), never what a registration stores. Per variant and family it prints the
 success (right label, ADD-S < 0.1), the precise share (< 0.02), the share answered ``"match"``
@@ -141,6 +142,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default="mesh",
         help="how the unseen parts are registered: their mesh, or a 2,048-point cloud of it",
     )
+    parser.add_argument(
+        "--no-viewpoint", action="store_true", help="never tell the engine a case's viewpoint"
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--model", type=Path, default=MODELS_DIR / "dpc_mn.onnx")
     parser.add_argument("--gallery", type=Path, default=MODELS_DIR / "gallery.npz")
@@ -169,11 +173,15 @@ def main(argv: list[str] | None = None) -> dict:
     truths |= foreign_truths(foreign_meshes)
     add_model_points(truths, {**meshes, **foreign_meshes})  # ADD-S as the evaluation's
     cases = build_cases(args.families, meshes, foreign_meshes, truths, args.seed)
+    if args.no_viewpoint:  # a camera-frame cloud answered as if its camera were unknown
+        for case in cases:
+            case.params.pop("viewpoint", None)
     calibration = args.model.parent / "confidence.json"
     report = {
         "cases": len(cases),
         "families": args.families,
         "registered": args.registered,
+        "viewpoint": not args.no_viewpoint,
         "variants": {},
         "settings": {},
     }

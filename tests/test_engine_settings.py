@@ -43,6 +43,8 @@ def test_every_variant_answers_the_same_cases(tmp_path):
 
 def test_the_unseen_parts_are_registered_as_meshes_or_as_clouds():
     assert engine_settings.parse_args([]).registered == "mesh"
+    assert not engine_settings.parse_args([]).no_viewpoint
+    assert engine_settings.parse_args(["--no-viewpoint"]).no_viewpoint
     assert engine_settings.parse_args(["--registered", "cloud"]).registered == "cloud"
     with pytest.raises(SystemExit):
         engine_settings.parse_args(["--registered", "scan"])
