@@ -17,10 +17,10 @@ success (right label, ADD-S < 0.1), the precise share (< 0.02), the share answer
 and right, the false accepts (``"match"`` on a foreign part or junk), the median latency and the
 median of each step; for each family with both, also for its seen and unseen parts apart.
 ``--registered cloud`` registers the unseen parts as a 2,048-point cloud sampled on their mesh
-(a scan, a CAD export's points) instead of the mesh: what single views need is then rendered
-by hidden-point removal. The confidence is the shipped calibration's, fitted under the default
-settings: a variant that moves the fit and coverage moves it too (refit with
-``python -m evaluation.calibrate`` before shipping other settings).
+(a scan, a CAD export's points) instead of the mesh: its views are then rendered from a depth
+buffer of those points (``service.engine.views``). The confidence is the shipped
+calibration's, fitted under the default settings: a variant that moves the fit and coverage
+moves it too (refit with ``python -m evaluation.calibrate`` before shipping other settings).
 
 Needs the ``eval`` and ``train`` extras (pybullet's meshes). Latency figures are only worth
 comparing within one run, on a quiet machine.

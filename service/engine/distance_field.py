@@ -16,6 +16,7 @@ refinement does not see the difference (README, "Precision").
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -59,11 +60,11 @@ class DistanceField:
         flat = cells @ self._strides
         return self.nearest.reshape(-1)[flat]
 
-    @property
+    @cached_property
     def _last(self) -> np.ndarray:
         return np.array(self.nearest.shape, dtype=np.intp) - 1
 
-    @property
+    @cached_property
     def _strides(self) -> np.ndarray:
         shape = self.nearest.shape
         return np.array([shape[1] * shape[2], shape[2], 1], dtype=np.intp)

@@ -267,7 +267,7 @@ class Engine:
             visible = render(points, reference.scale, settings.views, surface, mesh.area)
             normals = mesh.face_normals[face_index]
         else:
-            visible = render(points, reference.scale, settings.views)
+            visible = render(points, reference.scale, settings.views, tree=tree)
             normals = estimate_normals(points, tree=tree)
         views = Views.of(points, visible)
         normals = orient_by_views(points, normals, views.directions, visible)
@@ -508,8 +508,8 @@ class Engine:
         scores = snapshot.classifier.scores(observed_grid)
         allowed = query.allowed
         plausible = allowed[self._plausible(snapshot.scales[allowed], size, settings.size_ratio)]
-        shortlist = plausible[np.argsort(-scores[plausible], kind="stable")]
-        shortlist = shortlist[: query.top_k or settings.top_k]
+        ranked = plausible[np.argsort(-scores[plausible], kind="stable")]
+        shortlist = ranked[: query.top_k or settings.top_k]
         clock.lap("classify")
 
         # 4-6. The whole part: hypotheses from its principal axes, verified, the best refined
@@ -517,7 +517,7 @@ class Engine:
         search = Search(self, snapshot, observed, observed_mapped, spacing, query, clock)
         chosen = query.sources
         whole = [s for s in chosen if s == "principal-axes"]
-        first = self._sure_first(scores, plausible)
+        first = sure_first(scores, ranked)
         fits = search.run({row: whole for row in shortlist}, query.refine, WHOLE_REFINED, first)
         if "views" in chosen and not excellent(fits, settings):
             # 3b-6. Single views: the parts whose rendered views' grids look most like the
@@ -588,16 +588,6 @@ class Engine:
             size_ratio=size / entry.reference.scale,
             points=len(scene),
         )
-
-    def _sure_first(self, scores: np.ndarray, plausible: np.ndarray) -> int | None:
-        """Eq. (4)'s first choice among the ``plausible`` rows when it is sure of it (its score
-        ``FIRST_LEAD`` times the next one's), else None. Full clouds mostly: eq. (4) learned
-        the parts' full views, and on one camera's view its scores lie close together."""
-        if not len(plausible):
-            return None
-        ranked = plausible[np.argsort(-scores[plausible], kind="stable")]
-        runner_up = float(scores[ranked[1]]) if len(ranked) > 1 else 0.0
-        return int(ranked[0]) if scores[ranked[0]] >= FIRST_LEAD * runner_up else None
 
     def _nearest_views(
         self,
@@ -794,6 +784,16 @@ FIRST_REFINED = 1  # hypotheses of eq. (4)'s first choice refined in any case ..
 FIRST_LEAD = 2.0  # ... when its score is this many times the next part's
 
 
+def sure_first(scores: np.ndarray, ranked: np.ndarray) -> int | None:
+    """Eq. (4)'s first choice among the ``ranked`` rows (best first) when it is sure of it (its
+    score ``FIRST_LEAD`` times the next one's), else None. Full clouds mostly: eq. (4) learned
+    the parts' full views, and on one camera's view its scores lie close together."""
+    if not len(ranked):
+        return None
+    runner_up = float(scores[ranked[1]]) if len(ranked) > 1 else 0.0
+    return int(ranked[0]) if scores[ranked[0]] >= FIRST_LEAD * runner_up else None
+
+
 class Search:
     """Steps 4-6 for one query: hypothesise, verify, refine, for a set of candidates."""
 
@@ -917,8 +917,9 @@ class Search:
             best = max(best, candidate.score)
         # a rescued pose was refined on half the budget; the one that now fits best gets the
         # rest, if it beats every fully refined one
-        if tried and max(f.score for f in tried) > max((f.score for f in refined), default=0.0):
-            self.refine(max(tried, key=lambda f: f.score))
+        winner = max(tried, key=lambda f: f.score, default=None)
+        if winner is not None and winner.score > max((f.score for f in refined), default=0.0):
+            self.refine(winner)
 
     def hypothesise(self, entry: Entry, chosen: list[str]) -> Hypotheses:
         settings = self.settings
@@ -1029,10 +1030,13 @@ class Search:
             self.refine(candidate)
             turned.append(candidate)
         alike = [best] + [t for t in turned if t.score >= ALIKE * best.score]
-        residuals = [own] + [
-            float(self.residuals(entry, t.rotation[None], t.translation[None])[0])
-            for t in alike[1:]
-        ]
+        residuals = [own]
+        if len(alike) > 1:
+            residuals += self.residuals(
+                entry,
+                np.stack([t.rotation for t in alike[1:]]),
+                np.stack([t.translation for t in alike[1:]]),
+            ).tolist()
         chosen = int(np.argmin(residuals))
         close = [
             f

@@ -80,12 +80,13 @@ def splat_visible(
     return point_depth <= front + DEPTH_SPACINGS * spacing
 
 
-def cloud_spacing(points: np.ndarray) -> float:
+def cloud_spacing(points: np.ndarray, tree: cKDTree | None = None) -> float:
     """A cloud's spacing for its own depth buffer: ``CLOUD_SPACINGS`` times the median
-    distance from a point to its nearest neighbour (a few points: any positive length)."""
+    distance from a point to its nearest neighbour (a few points: any positive length;
+    ``tree``: a ``cKDTree`` of ``points``, if one is at hand)."""
     if len(points) < 2:
         return 1.0
-    distance, _ = cKDTree(points).query(points, k=2)
+    distance, _ = (tree or cKDTree(points)).query(points, k=2)
     return max(CLOUD_SPACINGS * float(np.median(distance[:, 1])), 1e-12)
 
 
@@ -100,15 +101,16 @@ def render(
     count: int,
     surface: np.ndarray | None = None,
     area: float | None = None,
+    tree: cKDTree | None = None,
 ) -> np.ndarray:
     """(count, N) which reference points each view's camera sees: against ``surface`` (a dense
     sample of the uploaded mesh, whose ``area`` is known) when given, else against the points
-    themselves."""
+    themselves (``tree``: a ``cKDTree`` of them, if one is at hand)."""
     points = np.asarray(points, dtype=np.float64)
     centroid = points.mean(axis=0)
     cameras = centroid + directions(count) * CAMERA_DISTANCE * scale
     if surface is None:
-        surface, spacing = points, cloud_spacing(points)
+        surface, spacing = points, cloud_spacing(points, tree)
     else:
         spacing = sample_spacing(surface, area)
     return np.stack([splat_visible(points, surface, camera, spacing) for camera in cameras])
