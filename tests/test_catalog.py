@@ -11,6 +11,7 @@ import pytest
 
 from service.engine.engine import Engine
 from service.engine.mapping import Mapper
+from service.engine.views import facing, render
 from service.gallery.catalog import Catalog
 from service.settings import EngineSettings
 from tests.ledger import cloud, sha
@@ -110,3 +111,16 @@ def test_a_symmetry_found_by_an_earlier_rule_is_found_again_with_nothing_else_ch
     assert record.reference.symmetry == registered.symmetry  # written back
     for name in ("points", "mapped", "normals", "view_grids", "field"):
         assert sha(getattr(record.reference, name)) == sha(getattr(registered, name)), name
+
+
+def test_a_cloud_s_views_keep_the_points_facing_their_camera(replicas):
+    a, _ = replicas
+    box = np.random.default_rng(6).uniform(-1, 1, (2048, 3))
+    box *= 1 / np.abs(box).max(axis=1, keepdims=True)  # on a cube's faces
+    registered, _, _ = a.register("box", (box * [0.02, 0.03, 0.05]).astype(np.float32))
+    visible = registered.visible()
+    points = np.asarray(registered.points, np.float64)
+    faced = facing(points, registered.normals, registered.scale, len(visible))
+    assert visible.any(axis=1).all() and not (visible & ~faced).any()
+    # its own depth buffer alone lets through points seen edge-on, which the views leave out
+    assert (render(points, registered.scale, len(visible)) & ~faced).any()

@@ -16,7 +16,14 @@ from service.engine.normals import estimate_normals, orient_by_views
 from service.engine.sampling import sample_surface_faces
 from service.engine.symmetry import Symmetry, _group, find_symmetry
 from service.engine.verification import Occupancy, coverage, fit
-from service.engine.views import Views, cloud_spacing, directions, render, splat_visible
+from service.engine.views import (
+    Views,
+    cloud_spacing,
+    directions,
+    facing,
+    render,
+    splat_visible,
+)
 from service.engine.visibility import visible_points
 from tests.conftest import pybullet_mesh
 
@@ -122,6 +129,24 @@ def test_a_cube_seen_along_an_axis_shows_one_face():
     top = cube.face_normals[faces][:, 2] > 0.99
     bottom = cube.face_normals[faces][:, 2] < -0.99
     assert np.mean(seen[top]) > 0.97 and np.mean(seen[bottom]) < 0.05
+
+
+def test_a_view_keeps_the_points_facing_its_camera():
+    """The cloud's depth buffer lets the sides through edge-on; keeping what faces the camera
+    leaves the top face alone, as a mesh's buffer nearly does."""
+    cube = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    points, faces = sample_surface_faces(cube, 3000, 0)
+    normals = cube.face_normals[faces]
+    scale = radius(points)
+    visible = render(points, scale, 100) & facing(points, normals, scale, 100)
+    k = int(np.argmax(directions(100)[:, 2]))  # the camera nearest +z: 5 degrees off it
+    top = normals[:, 2] > 0.99
+    assert np.mean(visible[k][top]) > 0.97 and not visible[k][~top].any()
+    # a surface turned 60 degrees from the camera still faces it; one turned 80 no longer does
+    toward = directions(1)[0]
+    across = np.cross(toward, [0.0, 0.0, 1.0])
+    turned = [np.cos(np.radians(a)) * toward + np.sin(np.radians(a)) * across for a in (60, 80)]
+    assert facing(np.zeros((2, 3)), np.array(turned), 1.0, 1)[0].tolist() == [True, False]
 
 
 def test_a_point_behind_another_is_hidden():

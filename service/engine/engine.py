@@ -38,7 +38,15 @@ from service.engine.reference import Reference
 from service.engine.surroundings import set_aside_surroundings
 from service.engine.symmetry import Symmetry, find_symmetry
 from service.engine.verification import Occupancy, coverage, fit, surface_distance
-from service.engine.views import CAMERA_DISTANCE, Views, render, sample_spacing, splat_visible
+from service.engine.views import (
+    CAMERA_DISTANCE,
+    Views,
+    directions,
+    facing,
+    render,
+    sample_spacing,
+    splat_visible,
+)
 from service.engine.visibility import random_camera, visible_points
 from service.errors import EmptyGallery, UnknownReference
 from service.settings import EngineSettings
@@ -269,8 +277,9 @@ class Engine:
         else:
             visible = render(points, reference.scale, settings.views, tree=tree)
             normals = estimate_normals(points, tree=tree)
-        views = Views.of(points, visible)
-        normals = orient_by_views(points, normals, views.directions, visible)
+        normals = orient_by_views(points, normals, directions(settings.views), visible)
+        if mesh is None:  # a cloud's own buffer lets through what its camera hardly samples
+            visible &= facing(points, normals, reference.scale, settings.views)
         distance_field = DistanceField.of(points, reference.scale, tree=tree)
         surface_model = Surface.of(points, normals, distance_field, tree)
         grids = np.stack([grid(self.map(points[seen][:VIEW_POINTS])) for seen in visible])
