@@ -278,8 +278,10 @@ class Engine:
             visible = render(points, reference.scale, settings.views, tree=tree)
             normals = estimate_normals(points, tree=tree)
         normals = orient_by_views(points, normals, directions(settings.views), visible)
-        if mesh is None:  # a cloud's own buffer lets through what its camera hardly samples
-            visible &= facing(points, normals, reference.scale, settings.views)
+        if mesh is None:  # a cloud's own buffer lets through what its camera hardly samples;
+            # a view left facing nothing (a few points, normals at odds) keeps what it showed
+            faced = visible & facing(points, normals, reference.scale, settings.views)
+            visible = np.where(faced.any(axis=1, keepdims=True), faced, visible)
         distance_field = DistanceField.of(points, reference.scale, tree=tree)
         surface_model = Surface.of(points, normals, distance_field, tree)
         grids = np.stack([grid(self.map(points[seen][:VIEW_POINTS])) for seen in visible])
