@@ -33,7 +33,7 @@ from service.engine.icp import Surface, icp
 from service.engine.mapping import Mapper
 from service.engine.normalize import normalize, radius, subsample
 from service.engine.normals import estimate_normals, orient_by_views
-from service.engine.principal_axes import flatness
+from service.engine.principal_axes import Frame, flatness
 from service.engine.reference import Reference
 from service.engine.surroundings import set_aside_surroundings
 from service.engine.symmetry import Symmetry, find_symmetry
@@ -113,6 +113,7 @@ class Entry:
     # coverage; repeated where a view sees fewer
     expected: np.ndarray
     flatness: float  # principal_axes.flatness of its points (a flat part: under FLAT)
+    frame: Frame  # its points' centroid and principal axes
 
     @classmethod
     def of(cls, reference: Reference, blur: float) -> Entry:
@@ -135,6 +136,7 @@ class Entry:
             Symmetry.from_description(reference.symmetry, points.mean(axis=0)),
             expected,
             flatness(points),
+            Frame.of(points),
         )
 
 
@@ -818,6 +820,7 @@ class Search:
         self.viewpoint = query.viewpoint
         self.rng = rng = query.rng
         self.clock = clock
+        self.frame = Frame.of(observed)  # what every principal-axes and view hypothesis uses
         self.quick = observed[subsample(observed, QUICK_POINTS, rng)]
         self.cheap = observed[subsample(observed, settings.verify_points, rng)]
         self.refine_on = observed[subsample(observed, settings.icp_points, rng)]
@@ -938,9 +941,9 @@ class Search:
         made = []
         if "views" in chosen:
             every = np.arange(len(entry.views.radii))
-            made.append(sources.from_views(self.observed, entry.views, every, self.viewpoint))
+            made.append(sources.from_views(self.frame, entry.views, every, self.viewpoint))
         if "principal-axes" in chosen:
-            made.append(sources.from_principal_axes(self.observed, entry.surface.points))
+            made.append(sources.from_principal_axes(self.frame, entry.frame))
         if "mapped" in chosen or "paper" in chosen:
             made.append(
                 sources.from_mapped_pairs(

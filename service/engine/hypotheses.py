@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.engine.correspondences import mapped_pairs
-from service.engine.principal_axes import PROPER_SIGN_FLIPS, principal_axes
+from service.engine.principal_axes import PROPER_SIGN_FLIPS, Frame
 from service.engine.registration import paper_least_squares, ransac
 from service.engine.views import Views
 
@@ -63,28 +63,30 @@ class Hypotheses:
 
 
 def _frame_matches(
-    observed: np.ndarray, frames: np.ndarray, centroids: np.ndarray
+    observed: Frame, frames: np.ndarray, centroids: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Poses carrying each (frame, centroid) onto the observation's, four sign flips each:
-    (4K, 3, 3) rotations and (4K, 3) translations, flips varying fastest."""
-    centroid = observed.mean(axis=0)
-    axes = principal_axes(observed - centroid)
-    rotations = np.einsum("ij,sj,kmj->ksim", axes, PROPER_SIGN_FLIPS, frames).reshape(-1, 3, 3)
-    translations = centroid - np.einsum("hij,hj->hi", rotations, np.repeat(centroids, 4, axis=0))
+    """Poses carrying each (frame, centroid) onto the observation's ``observed`` frame, four
+    sign flips each: (4K, 3, 3) rotations and (4K, 3) translations, flips varying fastest."""
+    rotations = np.einsum("ij,sj,kmj->ksim", observed.axes, PROPER_SIGN_FLIPS, frames)
+    rotations = rotations.reshape(-1, 3, 3)
+    translations = observed.centroid - np.einsum(
+        "hij,hj->hi", rotations, np.repeat(centroids, 4, axis=0)
+    )
     return rotations, translations
 
 
 def from_views(
-    observed: np.ndarray, views: Views, chosen: np.ndarray, viewpoint: np.ndarray | None
+    observed: Frame, views: Views, chosen: np.ndarray, viewpoint: np.ndarray | None
 ) -> Hypotheses:
-    """View hypotheses for the ``chosen`` view indices."""
+    """View hypotheses for the ``chosen`` view indices (``observed``: the observation's
+    frame)."""
     chosen = np.asarray(chosen, dtype=np.intp)
     rotations, translations = _frame_matches(
         observed, views.frames[chosen], views.centroids[chosen]
     )
     expected = np.repeat(chosen, 4)
     if viewpoint is not None:
-        toward = viewpoint - observed.mean(axis=0)
+        toward = viewpoint - observed.centroid
         norm = np.linalg.norm(toward)
         if norm > 0:
             implied = np.einsum("hij,i->hj", rotations, toward / norm)  # R^T v, model frame
@@ -99,11 +101,11 @@ def from_views(
     return Hypotheses(rotations, translations, ("views",) * len(expected), expected)
 
 
-def from_principal_axes(observed: np.ndarray, reference: np.ndarray) -> Hypotheses:
+def from_principal_axes(observed: Frame, reference: Frame) -> Hypotheses:
     """The whole reference's principal frame carried onto the observation's."""
-    centroid = reference.mean(axis=0)
-    frame = principal_axes(reference - centroid)
-    rotations, translations = _frame_matches(observed, frame[None], centroid[None])
+    rotations, translations = _frame_matches(
+        observed, reference.axes[None], reference.centroid[None]
+    )
     return Hypotheses(rotations, translations, ("principal-axes",) * 4, np.full(4, -1))
 
 

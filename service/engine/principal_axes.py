@@ -7,6 +7,8 @@ of each axis: four proper (determinant +1) choices.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 # The four sign patterns of a right-handed frame: diag(s) with det = +1.
@@ -21,6 +23,19 @@ def principal_axes(centred: np.ndarray) -> np.ndarray:
     if np.linalg.det(axes) < 0:
         axes[:, 2] *= -1
     return axes
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A cloud's centroid and principal axes, found once for every hypothesis that uses them."""
+
+    centroid: np.ndarray  # (3,)
+    axes: np.ndarray  # (3, 3) columns, largest variance first (``principal_axes``)
+
+    @classmethod
+    def of(cls, points: np.ndarray) -> Frame:
+        centroid = points.mean(axis=0)
+        return cls(centroid, principal_axes(points - centroid))
 
 
 def flatness(points: np.ndarray) -> float:

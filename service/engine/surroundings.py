@@ -21,7 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
+from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
@@ -117,11 +117,16 @@ def groups(points: np.ndarray, link: float, tree: cKDTree | None = None) -> np.n
     """A group label per point: connected components of the within-``link`` neighbour graph
     (``tree``: a ``cKDTree`` of ``points``, if one is at hand)."""
     pairs = (tree or cKDTree(points)).query_pairs(link, output_type="ndarray")
-    graph = coo_matrix(
-        (np.ones(len(pairs), dtype=bool), (pairs[:, 0], pairs[:, 1])),
+    # the graph in compressed rows, built directly (a COO matrix's conversion costs more
+    # than the components); weak components of i -> j are the undirected ones
+    order = np.argsort(pairs[:, 0], kind="stable")
+    starts = np.zeros(len(points) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(pairs[:, 0], minlength=len(points)), out=starts[1:])
+    graph = csr_matrix(
+        (np.ones(len(pairs), dtype=bool), pairs[order, 1], starts),
         shape=(len(points), len(points)),
     )
-    _, labels = connected_components(graph, directed=False)
+    _, labels = connected_components(graph, directed=True, connection="weak")
     return labels
 
 
