@@ -49,7 +49,7 @@ class Occupancy:
         self.shape = cells.max(axis=0) + 3
         grid = np.zeros(self.shape, dtype=bool)
         grid[cells[:, 0], cells[:, 1], cells[:, 2]] = True
-        for axis in range(3):  # a 3x3x3 box is three 3-voxel lines: 8x faster than ndimage's
+        for axis in range(3):  # a 3x3x3 box is three 3-voxel lines (ndimage's took 0.8 ms)
             grid = dilate_along(grid, axis)
         # two empty voxels on every side, one after dilating; the outermost layer is kept
         # empty (rounding may put the lowest point one voxel lower), so that a point past the

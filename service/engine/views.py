@@ -123,13 +123,18 @@ def render(
     sample of the uploaded mesh, whose ``area`` is known) when given, else against the points
     themselves (``tree``: a ``cKDTree`` of them, if one is at hand)."""
     points = np.asarray(points, dtype=np.float64)
-    centroid = points.mean(axis=0)
-    cameras = centroid + directions(count) * CAMERA_DISTANCE * scale
     if surface is None:
         surface, spacing = points, cloud_spacing(points, tree)
     else:
         spacing = sample_spacing(surface, area)
-    return np.stack([splat_visible(points, surface, camera, spacing) for camera in cameras])
+    placed = cameras(points, scale, count)
+    return np.stack([splat_visible(points, surface, camera, spacing) for camera in placed])
+
+
+def cameras(points: np.ndarray, scale: float, count: int) -> np.ndarray:
+    """(count, 3) where each view's camera sits: ``CAMERA_DISTANCE`` scales from the centroid
+    of ``points`` (float64), along ``directions(count)``."""
+    return points.mean(axis=0) + directions(count) * CAMERA_DISTANCE * scale
 
 
 def facing(
@@ -139,8 +144,7 @@ def facing(
     ``normals`` and the direction to the camera (placed as ``render`` places it) is above
     ``cosine``."""
     points = np.asarray(points, dtype=np.float64)
-    cameras = points.mean(axis=0) + directions(count) * CAMERA_DISTANCE * scale
-    toward = cameras[:, None, :] - points[None]  # (count, N, 3)
+    toward = cameras(points, scale, count)[:, None, :] - points[None]  # (count, N, 3)
     along = np.einsum("kni,ni->kn", toward, np.asarray(normals, dtype=np.float64))
     return along > cosine * np.linalg.norm(toward, axis=2)
 
