@@ -51,7 +51,7 @@ def role_of(presented: str, keys: dict[str, Role]) -> Role | None:
     return found
 
 
-def authorize(
+async def authorize(
     scopes: SecurityScopes,
     settings: SettingsDep,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
