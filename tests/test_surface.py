@@ -14,8 +14,9 @@ from service.engine.icp import Surface, icp
 from service.engine.normalize import radius
 from service.engine.normals import estimate_normals, orient_by_views
 from service.engine.sampling import sample_surface_faces
+from service.engine.surroundings import groups
 from service.engine.symmetry import Symmetry, _group, find_symmetry
-from service.engine.verification import Occupancy, coverage, fit
+from service.engine.verification import Occupancy, coverage, dilate_along, fit
 from service.engine.views import (
     Views,
     cloud_spacing,
@@ -278,3 +279,33 @@ def test_a_handful_of_points_has_a_surface_and_no_symmetry_claimed(count):
     assert surface.neighbours.max() < count
     found = find_symmetry(surface, scale, np.random.default_rng(0))
     assert found.kind == "none"
+
+
+def test_the_occupancy_grows_each_voxel_by_its_3x3x3_box():
+    """Dilated one axis at a time, as scipy's 3x3x3 dilation does it at once."""
+    from scipy.ndimage import binary_dilation
+
+    rng = np.random.default_rng(3)
+    for _ in range(10):
+        grid = rng.random(rng.integers(3, 30, size=3)) < rng.uniform(0.002, 0.2)
+        grown = grid
+        for axis in range(3):
+            grown = dilate_along(grown, axis)
+        assert np.array_equal(grown, binary_dilation(grid, structure=np.ones((3, 3, 3), bool)))
+
+
+def test_neighbour_groups_are_the_components_of_the_within_link_graph():
+    """The strays' groups, from the graph in compressed rows, are the undirected graph's."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rng = np.random.default_rng(4)
+    for _ in range(10):
+        points = rng.normal(size=(int(rng.integers(2, 800)), 3))
+        link = rng.uniform(0.05, 0.6)
+        pairs = cKDTree(points).query_pairs(link, output_type="ndarray")
+        graph = coo_matrix(
+            (np.ones(len(pairs), bool), (pairs[:, 0], pairs[:, 1])), shape=(len(points),) * 2
+        )
+        _, expected = connected_components(graph, directed=False)
+        assert np.array_equal(groups(points, link), expected)
