@@ -1138,6 +1138,7 @@ def run(args: argparse.Namespace, progress: Callable[[str], None] = print) -> di
             settings.model.intra_op_threads,
             settings.model.inter_op_threads,
             provider == "cuda",
+            blas_threads=settings.model.blas_threads,
         )
         engines[provider] = Engine(mapper, settings.engine, load_calibration(settings))
     engine = engines[args.providers[0]]

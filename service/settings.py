@@ -24,6 +24,9 @@ class ModelSettings(BaseModel):
     confidence: Path | None = None  # default: confidence.json beside the model file
     intra_op_threads: int = Field(2, ge=1)
     inter_op_threads: int = Field(1, ge=1)
+    # threads of numpy's and scipy's BLAS (OpenBLAS) in the process: its idle workers spin
+    # and took the cores from onnxruntime's (``service.engine.mapping.limit_blas``)
+    blas_threads: int = Field(1, ge=1)
     use_cuda: bool = True  # CUDA execution provider when onnxruntime-gpu and a GPU are present
 
 

@@ -14,6 +14,7 @@ import typing
 
 import pytest
 from pydantic import BaseModel, ValidationError
+from threadpoolctl import threadpool_info, threadpool_limits
 
 from service.__main__ import settings_message
 from service.api.app import create_app
@@ -26,7 +27,7 @@ from service.api.startup import (
     unknown_variables,
 )
 from service.engine.hypotheses import SOURCES
-from service.engine.mapping import file_sha256
+from service.engine.mapping import Mapper, file_sha256
 from service.gallery.sqlite_store import FILENAME, SQLiteStore
 from service.gallery.store import SCHEMA_VERSION, StoreIncompatible
 from service.settings import EngineSettings, GallerySettings, ModelSettings, Settings
@@ -254,3 +255,14 @@ def test_a_gallery_url_that_is_not_postgresql(tmp_path):
     result = run_service(tmp_path / "data", gallery__url="mysql://user:very-secret@host/db")
     refused(result, "invalid settings", "DPC_GALLERY__URL", "postgresql://")
     assert "very-secret" not in result.stderr + result.stdout
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_model_holds_numpy_blas_to_its_setting(threads):
+    """numpy's OpenBLAS runs as many threads as ``blas_threads`` once a model is loaded (its
+    spinning workers took the cores from onnxruntime's); the limits are restored after."""
+    with threadpool_limits(limits=None):
+        Mapper.from_settings(ModelSettings(path=MODEL.path, blas_threads=threads))
+        blas = [pool for pool in threadpool_info() if pool["user_api"] == "blas"]
+        assert blas, "numpy's BLAS is not seen"
+        assert all(pool["num_threads"] == threads for pool in blas)

@@ -4,6 +4,14 @@ The CUDA execution provider is used when onnxruntime-gpu and a GPU are present a
 ``use_cuda`` is set, the CPU provider otherwise. How the network expects its input
 (principal-axes frame or not) travels inside the ONNX file as metadata, so a model
 and its preprocessing cannot be separated.
+
+The process's BLAS (numpy's and scipy's OpenBLAS) is held to ``blas_threads`` (one) where a
+``Mapper`` is made: OpenBLAS runs a product of a few million values, such as eq. (4)'s
+weights for 1,000 references, on every core, and its workers then spin a while, taking
+the cores from onnxruntime's threads and the engine's own. Measured in process on 200 full
+clouds against 1,000 references (``benchmarks.align_http``'s clouds and padding), median
+``Engine.align``: 19.3 ms with two BLAS threads, 10.4-11.0 ms with one (40 references:
+10.2 ms either way); the network's step 2.5 -> 1.7 ms, eq. (4)'s 2.7 -> 0.5 ms.
 """
 
 from __future__ import annotations
@@ -13,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
+from threadpoolctl import threadpool_limits
 
 from service.settings import ModelSettings
 
@@ -28,6 +37,12 @@ def file_sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
+def limit_blas(threads: int) -> None:
+    """Hold every BLAS library loaded in the process (numpy's and scipy's OpenBLAS; torch's
+    own is linked in and not seen) to ``threads`` threads, from now on."""
+    threadpool_limits(limits=threads, user_api="blas")
+
+
 class Mapper:
     """The DPC-MN network: normalised (N, 3) points to (N, 2) mapped coordinates."""
 
@@ -38,7 +53,10 @@ class Mapper:
         inter_op_threads: int = 1,
         use_cuda: bool = True,
         model_hash: str | None = None,  # when the caller has already read the file
+        blas_threads: int | None = 1,  # None leaves the process's BLAS as it is
     ):
+        if blas_threads is not None:
+            limit_blas(blas_threads)
         options = ort.SessionOptions()
         options.intra_op_num_threads = intra_op_threads
         options.inter_op_num_threads = inter_op_threads
@@ -56,7 +74,12 @@ class Mapper:
     @classmethod
     def from_settings(cls, model: ModelSettings, model_hash: str | None = None) -> Mapper:
         return cls(
-            model.path, model.intra_op_threads, model.inter_op_threads, model.use_cuda, model_hash
+            model.path,
+            model.intra_op_threads,
+            model.inter_op_threads,
+            model.use_cuda,
+            model_hash,
+            model.blas_threads,
         )
 
     def map(self, normalized: np.ndarray) -> np.ndarray:
