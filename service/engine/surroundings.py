@@ -78,18 +78,15 @@ def is_support(
     plane: np.ndarray, on_plane: np.ndarray, part: np.ndarray, viewpoint: np.ndarray | None
 ) -> bool:
     """Whether a plane is a table under ``part`` rather than a face of it: the part lies on
-    one side, the camera on the same side (a face of a part is seen from outside, with the
-    part behind it), and the plane spreads around it, mostly beyond its footprint (a face lies
-    within the part's). Without a viewpoint the plane must hold ``PLANE_SHARE_BLIND`` of all
-    points."""
+    one side, the camera (if known) on the same side (a face of a part is seen from outside,
+    with the part behind it), and the plane spreads around it, mostly beyond its footprint (a
+    face lies within the part's). Without a viewpoint the plane must also hold
+    ``PLANE_SHARE_BLIND`` of all points (``set_aside_surroundings`` checks that first)."""
     height = part @ plane[:3] - plane[3]
     side = np.sign(np.median(height))
     if np.mean(np.sign(height) == side) < ONE_SIDE:
         return False
-    if viewpoint is None:
-        if len(on_plane) < PLANE_SHARE_BLIND * (len(on_plane) + len(part)):
-            return False
-    elif np.sign(viewpoint @ plane[:3] - plane[3]) != side:
+    if viewpoint is not None and np.sign(viewpoint @ plane[:3] - plane[3]) != side:
         return False
     centre = part.mean(axis=0)
     offset = on_plane - centre
@@ -164,6 +161,12 @@ def set_aside_surroundings(
     if found is None:
         return [whole]
     plane, on_plane = found
+    if viewpoint is None and on_plane.mean() < PLANE_SHARE_BLIND:
+        # the share of all points on the plane, from the sample; the part's points cannot be
+        # counted against the plane's, as they once were: they are a sample of their own
+        # (1,024 of the rest), so a table under a part seen by more than ~1,000 points never
+        # held half of them, whatever its share of the cloud
+        return [whole]
     plane, thickness = fitted(sample[on_plane], plane, PLANE_SPACINGS * step)
     rest = points[np.abs(points @ plane[:3] - plane[3]) >= thickness]
     if len(rest) < 20:
