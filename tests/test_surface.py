@@ -309,3 +309,25 @@ def test_neighbour_groups_are_the_components_of_the_within_link_graph():
         )
         _, expected = connected_components(graph, directed=False)
         assert np.array_equal(groups(points, link), expected)
+
+
+def test_strays_are_the_same_measured_one_by_one_or_through_a_tree(monkeypatch):
+    """The gap from each small group to the kept points, by brute force (a few strays) or by a
+    KD-tree (many), sets the same points aside."""
+    from service.engine import surroundings
+
+    rng = np.random.default_rng(5)
+    for _ in range(10):
+        body = rng.normal(size=(int(rng.integers(200, 900)), 3))
+        directions = rng.normal(size=(int(rng.integers(1, 60)), 3))
+        strays = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+        strays *= rng.uniform(12, 20, size=(len(strays), 1))  # beyond ten spacings of the body
+        points = np.vstack([body, strays])
+        spacing = np.median(cKDTree(body).query(body, k=2)[0][:, 1])
+        step = float(spacing * rng.uniform(0.8, 1.5))
+        labels = groups(points, 3 * step)
+        brute = surroundings.the_part(points, labels, step)
+        monkeypatch.setattr(surroundings, "BRUTE_FORCE", 0)
+        tree = surroundings.the_part(points, labels, step)
+        monkeypatch.undo()
+        assert np.array_equal(brute, tree) and not brute.all()

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial.distance import cdist
 from scipy.spatial import cKDTree
 
 from service.engine.normalize import radius, subsample
@@ -41,6 +42,7 @@ THICKNESS = 4.0  # a table: within this many standard deviations of its fitted p
 LINK_SPACINGS = 3.0  # neighbours closer than this many spacings are one group
 STRAY_SHARE = 0.02  # a group of less than this share of the points ...
 STRAY_GAP = 10.0  # ... this many spacings from any larger group is stray
+BRUTE_FORCE = 65536  # point pairs measured one by one rather than through a tree, at most
 
 
 @dataclass(frozen=True)
@@ -119,8 +121,8 @@ def groups(points: np.ndarray, link: float, tree: cKDTree | None = None) -> np.n
     order = np.argsort(pairs[:, 0], kind="stable")
     starts = np.zeros(len(points) + 1, dtype=np.int64)
     np.cumsum(np.bincount(pairs[:, 0], minlength=len(points)), out=starts[1:])
-    graph = csr_matrix(
-        (np.ones(len(pairs), dtype=bool), pairs[order, 1], starts),
+    graph = csr_matrix(  # float64 weights: what connected_components would convert them to
+        (np.ones(len(pairs)), pairs[order, 1], starts),
         shape=(len(points), len(points)),
     )
     _, labels = connected_components(graph, directed=True, connection="weak")
@@ -136,7 +138,11 @@ def the_part(points: np.ndarray, labels: np.ndarray, step: float) -> np.ndarray:
     keep = np.isin(labels, np.flatnonzero(sizes >= STRAY_SHARE * len(labels)))
     if keep.all() or not keep.any():
         return np.ones(len(points), dtype=bool) if not keep.any() else keep
-    gap, _ = cKDTree(points[keep]).query(points[~keep], k=1)
+    outside, inside = points[~keep], points[keep]
+    if len(outside) * len(inside) <= BRUTE_FORCE:  # a few strays: cheaper than a tree
+        gap = np.sqrt(cdist(outside, inside, "sqeuclidean").min(axis=1))
+    else:
+        gap, _ = cKDTree(inside).query(outside, k=1)
     keep[np.flatnonzero(~keep)[gap <= STRAY_GAP * step]] = True
     return keep
 
