@@ -63,6 +63,19 @@ def surface_centroid(mesh: trimesh.Trimesh) -> np.ndarray:
     return (np.asarray(mesh.triangles_center) * weights[:, None]).sum(axis=0) / weights.sum()
 
 
+def surface_covariance(mesh: trimesh.Trimesh) -> np.ndarray:
+    """(3, 3) the covariance of the surface about ``surface_centroid``, integrated exactly over
+    the triangles: over a triangle (a, b, c) of area A, x x^T integrates to
+    A / 12 (a a^T + b b^T + c c^T + s s^T) with s = a + b + c."""
+    triangles = np.asarray(mesh.triangles, dtype=np.float64) - surface_centroid(mesh)
+    areas = np.asarray(mesh.area_faces, dtype=np.float64)
+    summed = triangles.sum(axis=1)
+    second = np.einsum("fvi,fvj->fij", triangles, triangles) + np.einsum(
+        "fi,fj->fij", summed, summed
+    )
+    return np.einsum("f,fij->ij", areas / 12, second) / areas.sum()
+
+
 def placed(mesh: trimesh.Trimesh, rotation: np.ndarray, translation: np.ndarray):
     """A copy of ``mesh`` moved to ``R @ v + t``."""
     vertices = np.asarray(mesh.vertices, np.float64) @ np.asarray(rotation).T + translation
@@ -261,11 +274,14 @@ def turned_off_surface(
 def symmetry_axis(mesh: trimesh.Trimesh, order: int, samples: int = 4096) -> np.ndarray:
     """The principal axis about which a part is symmetric: the unit axis (model frame, through
     the surface centroid) whose turn by 360°/``order`` (``order`` 0: a revolution, tried at
-    90°) changes the sampled surface least."""
+    90°) changes the sampled surface least. A symmetry's axis is a principal axis of the
+    surface, exactly: the axes are the mesh's own (``surface_covariance``), not a sample's,
+    whose axes were 0.9° off the lego brick's, so that its quarter turns showed another
+    surface by up to 1.8° and the answers' spread measured that too."""
     points = sample_surface(mesh, samples, 1).astype(np.float64)
     other = sample_surface(mesh, samples, 2).astype(np.float64)
     centre = surface_centroid(mesh)
-    _, axes = np.linalg.eigh(np.cov((points - centre).T))
+    _, axes = np.linalg.eigh(surface_covariance(mesh))
     angle = 2 * np.pi / order if order else np.pi / 2
 
     def gap(axis: np.ndarray) -> float:

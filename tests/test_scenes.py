@@ -22,6 +22,7 @@ from evaluation.scenes import (
     placed,
     sensor_view,
     surface_centroid,
+    surface_covariance,
     surface_gap,
     symmetry_axis,
     table_scene,
@@ -187,6 +188,21 @@ def test_symmetry_axes_of_a_cylinder_a_square_box_and_a_real_part():
     tilt = np.cross(axis, [1.0, 0, 0])
     rotation, shift = turn_about(tilt / np.linalg.norm(tilt), np.radians(60), centre)
     assert surface_gap(points @ rotation.T + shift, other) > 3 * floor
+
+
+def test_the_symmetry_axis_is_the_mesh_s_own_not_a_sample_s():
+    """The surface's covariance integrated over the triangles (what a dense sample tends to),
+    and the axis a square box turns about found to a hundredth of a degree, however it lies;
+    the lego brick's within a tenth of its studs' axis (a 4,096-point sample's was 0.9° off)."""
+    box = trimesh.creation.box((1.0, 1.0, 2.5))
+    turn = Rotation.random(random_state=7).as_matrix()
+    box.apply_transform(np.block([[turn, np.zeros((3, 1))], [np.zeros((1, 3)), 1.0]]))
+    dense = sample_surface(box, 200_000, 0).astype(np.float64)
+    assert np.allclose(surface_covariance(box), np.cov(dense.T), atol=0.01)
+    axis = symmetry_axis(box, 4)
+    assert np.degrees(np.arccos(min(1.0, abs(axis @ turn[:, 2])))) < 0.01
+    lego = symmetry_axis(pybullet_mesh("lego/lego.obj"), 4)
+    assert np.degrees(np.arccos(min(1.0, abs(lego @ [0, 1, 0])))) < 0.1
 
 
 @pytest.mark.parametrize("name", list(SYMMETRIC_PARTS))
