@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial.distance import cdist
 from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
 
 from service.engine.normalize import radius, subsample
 
