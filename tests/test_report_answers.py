@@ -68,9 +68,19 @@ def test_verdicts_per_family_view_and_set():
 def test_symmetric_spread_per_group_and_step_latency():
     records = [
         record("symmetric", True, True, group="can/0/full", rotation=turned(a)) for a in (0, 1, 3)
-    ] + [record("symmetric", True, True, group="can/0/sensor", rotation=turned(a)) for a in (0, 90)]
-    spreads = {r["group"]: r["spread_deg"] for r in symmetric_rows(records)}
+    ] + [
+        record("symmetric", True, a != 90, group="can/0/sensor", rotation=turned(a))
+        for a in (0, 2, 90)
+    ]
+    rows = symmetric_rows(records)
+    spreads = {r["group"]: r["spread_deg"] for r in rows}
     assert spreads == pytest.approx({"can/0/full": 3.0, "can/0/sensor": 90.0})
+    matches = {r["group"]: r["spread_match_deg"] for r in rows}  # the refused 90° left out
+    assert matches == pytest.approx({"can/0/full": 3.0, "can/0/sensor": 2.0})
+    (target,) = [t for t in answer_targets(records, rows) if t["target"].startswith("symmetric")]
+    assert target["figure"] == (
+        '0 of 2 groups within; largest spread 90.0° (1 of 2 groups within among "match" answers)'
+    )
     timed = [record("sensor", True, True, timings_ms={"map": m, "total": 2 * m}) for m in (1, 3, 8)]
     steps = {r["step"]: r for r in step_latency(timed)}
     assert list(steps) == ["map", "total"]
