@@ -378,7 +378,7 @@ def readme_lines(answers: dict) -> list[str]:
     lines += [
         "Each group is one pose of the part turned about its symmetry axis by several angles"
         " (the same surface); the spread is the largest angle between two answered rotations,"
-        " of all answers and of the `\"match\"` ones (what a robot acts on; n/a under two).",
+        ' of all answers and of the `"match"` ones (what a robot acts on; n/a under two).',
         "",
         "| system | group | set | members | label right | accepted | spread (°) "
         "| spread of matches (°) |",
