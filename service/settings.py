@@ -66,6 +66,9 @@ class EngineSettings(BaseModel):
     # the surface are refined, and the one nearest after refining answered (0: not tried)
     near_refined: int = Field(2, ge=0)
     icp_points: int = Field(384, ge=16)
+    # the answer's refinement, where it had not settled, continued for this many iterations on
+    # every observed point (0: not); see Search.polish
+    polish_iterations: int = Field(24, ge=0)
     view_grids: int = Field(32, ge=1)  # augmented full views per reference for eq. (4)
     partial_views: float = Field(0.0, ge=0, le=1)  # share of them seen by a single camera
     classifier_ridge: float = Field(1e-3, gt=0)

@@ -189,6 +189,7 @@ class Fit:
     fit: float
     coverage: float
     refined: bool = False
+    settled: bool = False  # its last refinement stopped before its iterations ran out
 
     @property
     def score(self) -> float:
@@ -553,6 +554,9 @@ class Engine:
         if query.refine:
             fits = search.resolve_near(fits)
             clock.lap("near-symmetries")
+            # 6c. The winner's pose finished, where the search's budget stopped short of it.
+            if search.polish(fits[0]):
+                clock.lap("refine")
 
         # 7. Decide: the best fit x coverage over every candidate and hypothesis; its
         # canonical pose among those its symmetry makes equivalent; other poses that fit alike.
@@ -999,24 +1003,47 @@ class Search:
     def refine(self, candidate: Fit, iterations: int | None = None) -> None:
         """Point-to-plane ICP from the fit's pose (``iterations``: the setting's unless
         given), then verified again on more points."""
-        settings = self.settings
         entry = self.snapshot.entries[self.labels[candidate.row]]
-        scale = entry.reference.scale
-        rotation, translation, _ = icp(
-            self.refine_on,
-            entry.surface,
-            candidate.rotation,
-            candidate.translation,
-            noise=0.25 * settings.tolerance * scale,
-            gate=5 * settings.tolerance * scale,
-            iterations=iterations or settings.icp_iterations,
-        )
+        rotation, translation = self.icp(candidate, iterations or self.settings.icp_iterations)
         made = Hypotheses(
             rotation[None], translation[None], (candidate.source,), np.array([candidate.view])
         )
         (checked,) = self.verify(candidate.row, entry, made, count=EXPECTED)
         candidate.rotation, candidate.translation = rotation, translation
         candidate.fit, candidate.coverage, candidate.refined = checked.fit, checked.coverage, True
+
+    def icp(
+        self, candidate: Fit, iterations: int, points: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The fit's pose refined by point-to-plane ICP on ``points`` (the refinement's sample
+        unless given); ``candidate.settled`` says whether it stopped before ``iterations``."""
+        settings = self.settings
+        entry = self.snapshot.entries[self.labels[candidate.row]]
+        scale = entry.reference.scale
+        rotation, translation, done = icp(
+            self.refine_on if points is None else points,
+            entry.surface,
+            candidate.rotation,
+            candidate.translation,
+            noise=0.25 * settings.tolerance * scale,
+            gate=5 * settings.tolerance * scale,
+            iterations=iterations,
+        )
+        candidate.settled = done < iterations
+        return rotation, translation
+
+    def polish(self, winner: Fit) -> bool:
+        """Finish the winner's pose where the search's budget cut its refinement short: up to
+        ``polish_iterations`` more, on every observed point (the search refines on a sample
+        of ``icp_points``, whose own scatter limits the pose). Only the pose changes: its fit
+        and coverage stay the search's, which the confidence was calibrated on (measured again
+        at the finished pose, they let a foreign part's view past the threshold). Whether it
+        ran."""
+        extra = self.settings.polish_iterations
+        if not extra or not winner.refined or winner.settled:
+            return False
+        winner.rotation, winner.translation = self.icp(winner, extra, self.observed)
+        return True
 
     def resolve_near(self, fits: list[Fit]) -> list[Fit]:
         """``fits`` (best first) with the best pose tried turned by each near-symmetry of its
