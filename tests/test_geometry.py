@@ -11,10 +11,11 @@ from service.engine.alignment import alignment_error, orthonormal
 from service.engine.classifier import LinearClassifier, classifier_input
 from service.engine.distance_field import DistanceField
 from service.engine.grid import GRID_SIZE, grid
+from service.engine.hypotheses import from_principal_axes
 from service.engine.icp import Surface, icp
 from service.engine.normalize import normalize, radius
 from service.engine.normals import estimate_normals
-from service.engine.principal_axes import principal_axes_hypotheses, principal_frame
+from service.engine.principal_axes import Frame, principal_frame
 from service.engine.registration import kabsch, paper_least_squares, ransac
 
 
@@ -64,7 +65,8 @@ def test_ransac_finds_the_pose_among_70_percent_wrong_pairs():
 def test_principal_axes_hypotheses_contain_the_true_pose(duck_points):
     rotation, translation = random_pose(6)
     scene = duck_points @ rotation.T + translation
-    errors = [angle_deg(r, rotation) for r, _ in principal_axes_hypotheses(scene, duck_points)]
+    made = from_principal_axes(Frame.of(scene), Frame.of(duck_points))
+    errors = [angle_deg(r, rotation) for r in made.rotations]
     assert min(errors) < 1.0
     assert len(errors) == 4
 

@@ -126,6 +126,7 @@ class Entry:
             pool = np.flatnonzero(seen) if seen.any() else np.arange(len(points))
             drawn = rng.permutation(len(pool))[:EXPECTED]
             expected[k] = pool[np.resize(drawn, EXPECTED)]  # repeated where it sees fewer
+        frame = Frame.of(points)
         return cls(
             reference,
             tree,
@@ -133,10 +134,10 @@ class Entry:
             classifier_input(reference.view_grids, blur),
             stored_surface(reference, tree),
             Views.of(points, visible),
-            Symmetry.from_description(reference.symmetry, points.mean(axis=0)),
+            Symmetry.from_description(reference.symmetry, frame.centroid),
             expected,
             flatness(points),
-            Frame.of(points),
+            frame,
         )
 
 

@@ -60,21 +60,3 @@ def principal_frame(centred: np.ndarray) -> np.ndarray:
             axes[:, k] *= -1
     axes[:, 2] = np.cross(axes[:, 0], axes[:, 1])
     return axes
-
-
-def principal_axes_hypotheses(
-    observed: np.ndarray, reference: np.ndarray
-) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Poses ``scene = R @ model + t`` that carry the reference's frame onto the observation's.
-
-    One per proper sign flip; the translation matches the centroids.
-    """
-    observed_centroid = observed.mean(axis=0)
-    reference_centroid = reference.mean(axis=0)
-    observed_axes = principal_axes(observed - observed_centroid)
-    reference_axes = principal_axes(reference - reference_centroid)
-    poses = []
-    for signs in PROPER_SIGN_FLIPS:
-        rotation = (observed_axes * signs) @ reference_axes.T
-        poses.append((rotation, observed_centroid - rotation @ reference_centroid))
-    return poses
