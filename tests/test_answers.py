@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from evaluation.metrics import add_s, diameter, geodesic_deg
 from service.engine.confidence import Calibration, measures
-from service.engine.engine import Engine
+from service.engine.engine import RIGHT_EITHER_WAY, Engine, Fit
 from service.engine.mapping import Mapper
 from service.engine.sampling import sample_surface_faces
 from service.engine.surroundings import set_aside_surroundings
@@ -315,3 +315,31 @@ def test_a_flange_that_only_a_notch_tells_apart_is_answered_at_the_right_turn():
             errors.append(symmetry.distance_deg(answer.rotation, rotation))
         within[kind] = sum(e < 2.0 for e in errors)
     assert within["near"] >= 6 and within["bare"] <= 3, within
+
+
+@needs_model
+def test_another_pose_that_would_be_right_too_does_not_lower_the_confidence(engine):
+    """A pose turned by one of the flange's near-symmetries places the part almost where the
+    answer does (were it the truth, the answer would still be right): its gap to the answer is
+    under ``RIGHT_EITHER_WAY``, which the confidence's ``alike`` leaves out; the part turned
+    by 90 degrees across their axis is far (0.14 of its scale)."""
+    entry = engine.entry("kuka-link-7")
+    centre = np.asarray(entry.reference.symmetry["centre"])
+    rotation = Rotation.random(random_state=3).as_matrix()
+    translation = np.array([0.0, 0.1, 0.6])
+
+    def pose(turn: np.ndarray) -> Fit:  # the answer's pose turned by ``turn`` about the centre
+        return Fit(
+            0, rotation @ turn, rotation @ (centre - turn @ centre) + translation, "", -1, 1, 1
+        )
+
+    answer = pose(np.eye(3))
+    near = [np.asarray(turn) for turn in entry.reference.symmetry["near"]]
+    along = Rotation.from_matrix(near[0]).as_rotvec()  # the axis the near turns are about
+    perpendicular = np.cross(
+        along, [1.0, 0, 0] if abs(along[0]) < 0.9 * np.linalg.norm(along) else [0, 1.0, 0]
+    )
+    across = Rotation.from_rotvec(np.pi / 2 * perpendicular / np.linalg.norm(perpendicular))
+    assert entry.gap(answer, answer) < 1e-3
+    assert max(entry.gap(answer, pose(turn)) for turn in near) < RIGHT_EITHER_WAY
+    assert entry.gap(answer, pose(across.as_matrix())) > 5 * RIGHT_EITHER_WAY

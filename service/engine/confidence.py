@@ -7,7 +7,9 @@ logistic regression over a few measures of the answer, each in units of the part
 - ``fit``: the share of observed points on the part's surface at the answered pose;
 - ``coverage``: the share of what the camera should see of the part that was observed;
 - ``margin``: how much better the part fits than the best other part (fit x coverage);
-- ``alike``: how close the best other pose of the same part comes (0 when none does);
+- ``alike``: how close the best other pose of the same part comes (0 when none does; a pose
+  that places the part within ``engine.RIGHT_EITHER_WAY`` of the answer's, by which the
+  answer would still be precise, does not count);
 - ``points``: log10 of the number of observed points;
 - ``size``: log of the observed radius over the part's scale.
 

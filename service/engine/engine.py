@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from service.engine import confidence
 from service.engine import hypotheses as sources
-from service.engine.alignment import alignment_error
+from service.engine.alignment import alignment_error, to_model_frame
 from service.engine.classifier import LinearClassifier, classifier_input, view_features, view_gram
 from service.engine.confidence import Calibration
 from service.engine.distance_field import DistanceField
@@ -140,6 +140,17 @@ class Entry:
             frame,
         )
 
+    def gap(self, pose: Fit, other: Fit) -> float:
+        """How far apart the part lies at two poses, over its scale: the mean distance from
+        its points placed at ``other`` to its surface placed at ``pose`` (ADD-S, measured on
+        the surface rather than between samples), on the points coverage draws for the
+        whole part."""
+        points = self.surface.points[self.expected[-1]]
+        placed = points @ other.rotation.T + other.translation
+        model = to_model_frame(placed, pose.rotation, pose.translation)
+        distance, _ = surface_distance(self.surface, model)
+        return float(distance.mean()) / self.reference.scale
+
 
 def stored_surface(reference: Reference, tree: cKDTree | None = None) -> Surface:
     """The surface a complete reference stores: its points, normals and distance field
@@ -205,6 +216,11 @@ MAX_ALTERNATIVES = 3
 NEAR_SOURCE = "near-symmetry"  # the hypothesis of a pose found by turning the best one
 SCREEN_ALIKE = 1.5  # a turned pose this much farther before refining is not refined
 RESIDUAL_ALIKE = 1.15  # a turned pose this much farther from the surface is no alternative
+# another pose that places the part closer than this share of its scale to the answer's (a
+# gear turned by a tooth, a near-symmetric part flipped) does not lower the confidence: were it
+# the truth, the answer would still be precise (ADD-S under 0.02 of the diameter, which is at
+# least the scale); a mug turned to hide its handle (0.04-0.06 of its scale) still does
+RIGHT_EITHER_WAY = 0.02
 
 
 class Stopwatch:
@@ -575,7 +591,8 @@ class Engine:
                 continue
             if entry.symmetry.distance_deg(other.rotation, winner.rotation) <= DIFFERENT_DEG:
                 continue
-            alike = max(alike, other.score)
+            if entry.gap(winner, other) >= RIGHT_EITHER_WAY:
+                alike = max(alike, other.score)
             if other.score >= ALIKE * winner.score and len(alternatives) < MAX_ALTERNATIVES:
                 alternatives.append(
                     AlternativePose(
