@@ -96,7 +96,6 @@ class Alignment:
     alike: float = 0.0  # the best fit x coverage of another, non-equivalent pose of the part
     size_ratio: float = 1.0  # the observed radius over the part's scale
     points: int = 0  # observed points the answer rests on
-    shape_row: int | None = None  # the classifier row eq. (4) scores best, whatever its size
 
 
 @dataclass(frozen=True)
@@ -519,12 +518,9 @@ class Engine:
         reasons += confidence.reasons(
             answer.label, values, answer.runner_up_label, answer.ambiguous
         )
-        if values["fit"] < POOR_FIT and answer.shape_row is not None:
-            # the part does not explain the cloud: other units? Only if the part whose grid
-            # eq. (4) likes best, whatever its size, would be this cloud's size in them (a
-            # noisy or cluttered cloud of the answered part itself is not in other units)
+        if values["fit"] < POOR_FIT:  # the part does not explain the cloud: other units?
             size = answer.size_ratio * entry.reference.scale
-            hint = self._unit_hint(query.snapshot.scales[[answer.shape_row]], size)
+            hint = self._unit_hint(query.snapshot.scales[query.allowed], size)
             reasons += [hint] if hint else []
         answer.reasons = reasons
 
@@ -626,7 +622,6 @@ class Engine:
             alike=alike,
             size_ratio=size / entry.reference.scale,
             points=len(scene),
-            shape_row=int(allowed[np.argmax(scores[allowed])]),
         )
 
     def _nearest_views(
