@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from evaluation.metrics import add_s, diameter, geodesic_deg
 from service.engine.confidence import Calibration, measures
-from service.engine.engine import RIGHT_EITHER_WAY, Engine, Fit
+from service.engine.engine import ALIKE, RIGHT_EITHER_WAY, Engine, Fit
 from service.engine.mapping import Mapper
 from service.engine.sampling import sample_surface_faces
 from service.engine.surroundings import set_aside_surroundings
@@ -320,9 +320,10 @@ def test_a_flange_that_only_a_notch_tells_apart_is_answered_at_the_right_turn():
 @needs_model
 def test_another_pose_that_would_be_right_too_does_not_lower_the_confidence(engine):
     """A pose turned by one of the flange's near-symmetries places the part almost where the
-    answer does (were it the truth, the answer would still be right): its gap to the answer is
-    under ``RIGHT_EITHER_WAY``, which the confidence's ``alike`` leaves out; the part turned
-    by 90 degrees across their axis is far (0.14 of its scale)."""
+    answer does (were it the truth, the answer would still be precise): its gap to the answer
+    is under ``RIGHT_EITHER_WAY``, which the confidence's ``alike`` leaves out; the part turned
+    by 90 degrees across their axis is far (0.14 of its scale). A full cloud of the flange is
+    answered with such poses as alternatives, which its ``alike`` does not count."""
     entry = engine.entry("kuka-link-7")
     centre = np.asarray(entry.reference.symmetry["centre"])
     rotation = Rotation.random(random_state=3).as_matrix()
@@ -343,3 +344,12 @@ def test_another_pose_that_would_be_right_too_does_not_lower_the_confidence(engi
     assert entry.gap(answer, answer) < 1e-3
     assert max(entry.gap(answer, pose(turn)) for turn in near) < RIGHT_EITHER_WAY
     assert entry.gap(answer, pose(across.as_matrix())) > 5 * RIGHT_EITHER_WAY
+
+    points, _ = sample_surface_faces(pybullet_mesh("kuka_iiwa/meshes/link_7.obj"), 2048, 103)
+    found = engine.align(points.astype(np.float64) @ rotation.T + translation)
+    assert found.label == "kuka-link-7" and found.ambiguous
+    winner = Fit(0, found.rotation, found.translation, "", -1, 1, 1)
+    for other in found.alternatives:
+        turned = Fit(0, other.rotation, other.translation, "", -1, 1, 1)
+        assert entry.gap(winner, turned) < RIGHT_EITHER_WAY
+    assert found.alike < ALIKE * found.fit * found.coverage
