@@ -353,4 +353,5 @@ def torchrun(*args: str) -> None:
     command += ["--nproc_per_node", "2", "-m", "training.train", *args]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "CUDA_VISIBLE_DEVICES": ""}
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
-    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    # the whole of stderr: a failed rank's own error comes before torchrun's long summary
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr

@@ -26,6 +26,7 @@ from typing import Literal
 
 import numpy as np
 import torch
+from torch.distributed.elastic.multiprocessing.errors import record
 from tqdm import tqdm
 
 from training.data import DataConfig, TrainingClouds
@@ -259,6 +260,7 @@ def train(config: TrainConfig, resume: bool = False) -> Path:
     return checkpoint_path
 
 
+@record  # under torchrun, a rank's exception and traceback reach the launcher's error summary
 def main(argv: list[str] | None = None) -> None:
     config, resume = parse_args(argv)
     train(config, resume)
