@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from service.engine import confidence
 from service.engine import hypotheses as sources
-from service.engine.alignment import alignment_error, to_model_frame
+from service.engine.alignment import alignment_error
 from service.engine.classifier import LinearClassifier, classifier_input, view_features, view_gram
 from service.engine.confidence import Calibration
 from service.engine.distance_field import DistanceField
@@ -145,10 +145,11 @@ class Entry:
         its points placed at ``other`` to its surface placed at ``pose`` (ADD-S, measured on
         the surface rather than between samples), on the points coverage draws for the
         whole part."""
-        points = self.surface.points[self.expected[-1]]
-        placed = points @ other.rotation.T + other.translation
-        model = to_model_frame(placed, pose.rotation, pose.translation)
-        distance, _ = surface_distance(self.surface, model)
+        turn = pose.rotation.T @ other.rotation  # ``other`` in ``pose``'s model frame
+        shift = (other.translation - pose.translation) @ pose.rotation
+        distance, _ = surface_distance(
+            self.surface, self.surface.points[self.expected[-1]] @ turn.T + shift
+        )
         return float(distance.mean()) / self.reference.scale
 
 
@@ -591,8 +592,8 @@ class Engine:
                 continue
             if entry.symmetry.distance_deg(other.rotation, winner.rotation) <= DIFFERENT_DEG:
                 continue
-            if entry.gap(winner, other) >= RIGHT_EITHER_WAY:
-                alike = max(alike, other.score)
+            if other.score > alike and entry.gap(winner, other) >= RIGHT_EITHER_WAY:
+                alike = other.score
             if other.score >= ALIKE * winner.score and len(alternatives) < MAX_ALTERNATIVES:
                 alternatives.append(
                     AlternativePose(
