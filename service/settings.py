@@ -64,7 +64,7 @@ class EngineSettings(BaseModel):
     rescued_parts: int = Field(4, ge=0)
     # the best pose turned by its part's near-symmetries: this many of the turned poses nearest
     # the surface are refined, and the one nearest after refining answered (0: not tried)
-    near_refined: int = Field(2, ge=0)
+    near_refined: int = Field(3, ge=0)
     icp_points: int = Field(384, ge=16)
     # the answer's refinement, where it had not settled, continued for this many iterations on
     # every observed point (0: not); see Search.polish

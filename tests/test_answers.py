@@ -318,6 +318,40 @@ def test_a_flange_that_only_a_notch_tells_apart_is_answered_at_the_right_turn():
 
 
 @needs_model
+def test_the_flange_turned_by_its_half_turn_gets_one_answer_whole_and_in_depth_views(engine):
+    """The evaluation's symmetric cases of the KUKA flange: one pose turned by 0, 180 and 360
+    degrees about its axis (the same surface), as full clouds and depth views. Every member
+    of a group is answered within 2 degrees of the others. Found in the evaluation: its best
+    turn was 4-9 degrees off a near turn, which ICP does not turn back (answers 45-135
+    degrees apart), and on its 384-point sample the right turn did not stand out."""
+    from evaluation.cases import make_cases
+    from evaluation.metrics import symmetric_spread
+
+    mesh = pybullet_mesh("kuka_iiwa/meshes/link_7.obj")
+    scale = engine.get("kuka-link-7").scale
+    cases = make_cases(
+        "symmetric",
+        {"kuka-link-7": mesh},
+        {"kuka-link-7": scale},
+        2048,
+        0,
+        2,
+        orders={"kuka-link-7": 2},
+    )
+    groups: dict[str, list] = {}
+    for case in cases:
+        viewpoint = case.params.get("viewpoint")
+        answer = engine.align(
+            case.points, viewpoint=None if viewpoint is None else np.asarray(viewpoint)
+        )
+        assert answer.label == "kuka-link-7"
+        groups.setdefault(case.params["group"], []).append(answer.rotation)
+    assert len(groups) == 4
+    spreads = {group: symmetric_spread(rotations) for group, rotations in groups.items()}
+    assert max(spreads.values()) < 2.0, spreads
+
+
+@needs_model
 def test_another_pose_that_would_be_right_too_does_not_lower_the_confidence(engine):
     """A pose turned by one of the flange's near-symmetries places the part almost where the
     answer does (were it the truth, the answer would still be precise): its gap to the answer

@@ -15,7 +15,7 @@ from service.engine.normalize import radius
 from service.engine.normals import estimate_normals, orient_by_views
 from service.engine.sampling import sample_surface_faces
 from service.engine.surroundings import groups
-from service.engine.symmetry import Symmetry, _group, find_symmetry
+from service.engine.symmetry import FINE_DEG, Symmetry, _group, apart, find_symmetry
 from service.engine.verification import Occupancy, coverage, dilate_along, fit
 from service.engine.views import (
     Views,
@@ -265,6 +265,46 @@ def test_the_canonical_pose_is_one_matrix_for_all_equivalent_poses():
     assert all(angle_deg(s, spun[0]) < 1e-6 for s in spun)
     described = Symmetry.from_description(symmetry.describe(), np.zeros(3))
     assert described.kind == "discrete" and len(described.rotations) == 4
+
+
+def test_a_nearly_round_part_is_tried_at_fine_turns_and_flipped_then_turned():
+    """A shaft's near turns: every 10 degrees about its axis (z), and an end-for-end flip
+    (about x). An answer is tried at each, at each flip then turned about the axis, and at
+    each (and at itself) turned FINE_DEG either way about the axis; a part with no nearly
+    round axis is tried at its near turns alone."""
+
+    def about(axis, degrees):
+        return Rotation.from_rotvec(np.radians(degrees) * np.asarray(axis, float)).as_matrix()
+
+    flip = about([1, 0, 0], 180)
+    turns = [about([0, 0, 1], a) for a in range(10, 180, 10)]
+    shaft = Symmetry(
+        "discrete",
+        np.zeros(3),
+        np.stack([np.eye(3), about([0, 0, 1], 180)]),
+        near=np.stack([*turns, flip]),
+    )
+    tried = shaft.near_tried
+
+    def among(rotation) -> bool:
+        return any(angle_deg(rotation, t) < 0.1 for t in tried)
+
+    assert all(among(t) for t in shaft.near)
+    assert among(flip @ about([0, 0, 1], 40)) and among(flip @ about([0, 0, 1], 130))
+    assert among(about([0, 0, 1], FINE_DEG)) and among(about([0, 0, 1], -FINE_DEG))
+    assert among(flip @ about([0, 0, 1], 40 + FINE_DEG))
+    assert not among(about([1, 0, 0], FINE_DEG))  # fine turns about the round axis alone
+    mug = Symmetry.none(np.zeros(3), near=np.stack([flip, about([0, 1, 0], 90)]))
+    assert len(mug.near_tried) == 2
+
+
+def test_apart_keeps_the_first_of_rotations_alike():
+    def about(degrees):
+        return Rotation.from_rotvec([0, 0, np.radians(degrees)]).as_matrix()
+
+    rotations = np.stack([about(a) for a in (0, 2, 30, 31, 60, 90)])
+    assert apart(rotations, 5.0, 10).tolist() == [0, 2, 4, 5]
+    assert apart(rotations, 5.0, 2).tolist() == [0, 2]
 
 
 @pytest.mark.parametrize("count", [3, 5, 8])

@@ -39,6 +39,7 @@ tell apart from the answer's, which the engine tries too (``Search.resolve_near`
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from itertools import permutations, product
 
 import numpy as np
@@ -69,6 +70,12 @@ MAX_GROUP = 120  # the largest discrete group looked for (a 60-tooth gear, both 
 NEAR = 0.8  # a turn keeping this share of the reference's own within the tolerance nearly fits
 NEAR_TURN_DEG = 10.0  # about a nearly round axis, the answer is tried at turns this far apart
 MAX_NEAR = 48
+# the answer is also tried turned this far either way about each near turn's axis, from itself
+# and from each near turn: point-to-plane ICP hardly turns a nearly round part about its axis
+# (only a hole's wall or a notch resists, and the robust kernel drops those while they lie
+# farther off than the noise), so a start 5 degrees off stays there (the KUKA flange)
+FINE_DEG = NEAR_TURN_DEG / 3
+ROUND_TURNS = 3  # near turns about one axis that make it nearly round
 DRIFT = 0.1  # share of the scale a refined symmetry may move the sample's centroid (its own error)
 
 
@@ -87,6 +94,33 @@ class Symmetry:
     def none(cls, centroid: np.ndarray, near: np.ndarray | None = None) -> Symmetry:
         near = np.zeros((0, 3, 3)) if near is None else near
         return cls("none", np.asarray(centroid, np.float64), np.eye(3)[None], near=near)
+
+    @cached_property
+    def near_tried(self) -> np.ndarray:
+        """(K', 3, 3) the turns an answer is tried at: ``near``; where at least
+        ``ROUND_TURNS`` of them turn about one axis (a nearly round part), also each other
+        near turn followed by each of those, and every one of these and the identity turned
+        by ``FINE_DEG`` either way about that axis."""
+        if not len(self.near):
+            return self.near
+        vectors = Rotation.from_matrix(self.near).as_rotvec()
+        axes = vectors / np.maximum(np.linalg.norm(vectors, axis=1, keepdims=True), 1e-12)
+        about = np.abs(axes @ axes.T) > np.cos(np.radians(SAME_DEG))
+        shared = about.sum(axis=1)
+        if shared.max() < ROUND_TURNS:  # no nearly round axis
+            return self.near
+        axis = axes[int(np.argmax(shared))]
+        round_ = np.abs(axes @ axis) > np.cos(np.radians(SAME_DEG))
+        # a turn about another axis, then one about the round axis (a shaft flipped end for
+        # end, then turned about its own axis)
+        others = self.near[~round_]
+        turns = np.concatenate(
+            [self.near, np.einsum("oij,rjk->orik", others, self.near[round_]).reshape(-1, 3, 3)]
+        )
+        turns = turns[apart(turns, SAME_DEG, len(turns))]
+        fine = Rotation.from_rotvec(np.stack([axis, -axis]) * np.radians(FINE_DEG)).as_matrix()
+        starts = np.concatenate([np.eye(3)[None], turns])
+        return np.concatenate([turns, np.einsum("sij,fjk->sfik", starts, fine).reshape(-1, 3, 3)])
 
     def describe(self) -> dict:
         """The JSON description a reference shows (and the store keeps)."""
@@ -392,10 +426,24 @@ def _group(found: list[Transform], fits) -> list[Transform]:
         del found[1 + int(np.argmax(blame[1:]))]
 
 
-def _near(first: np.ndarray, second: np.ndarray) -> np.ndarray:
-    """(A, B): whether each of ``first`` (A, 3, 3) is within SAME_DEG of each of ``second``."""
+def apart(rotations: np.ndarray, degrees: float, count: int) -> np.ndarray:
+    """Indices of the first ``count`` of ``rotations`` (K, 3, 3), in order, that lie more than
+    ``degrees`` from every earlier one kept."""
+    close = _near(rotations, rotations, degrees)
+    kept: list[int] = []
+    for k in range(len(rotations)):
+        if len(kept) == count:
+            break
+        if not close[k, kept].any():
+            kept.append(k)
+    return np.asarray(kept, dtype=np.intp)
+
+
+def _near(first: np.ndarray, second: np.ndarray, degrees: float = SAME_DEG) -> np.ndarray:
+    """(A, B): whether each of ``first`` (A, 3, 3) is within ``degrees`` of each of
+    ``second``."""
     cosine = (np.einsum("aij,bij->ab", first, second) - 1) / 2
-    return cosine > np.cos(np.radians(SAME_DEG))
+    return cosine > np.cos(np.radians(degrees))
 
 
 def _angle_deg(first: np.ndarray, second: np.ndarray) -> float:
