@@ -13,6 +13,7 @@ from service.engine.distance_field import DistanceField
 from service.engine.icp import Surface, icp
 from service.engine.normalize import radius
 from service.engine.normals import estimate_normals, orient_by_views
+from service.engine.principal_axes import Frame
 from service.engine.sampling import sample_surface_faces
 from service.engine.surroundings import groups
 from service.engine.symmetry import FINE_DEG, Symmetry, _group, apart, find_symmetry
@@ -296,6 +297,16 @@ def test_a_nearly_round_part_is_tried_at_fine_turns_and_flipped_then_turned():
     assert not among(about([1, 0, 0], FINE_DEG))  # fine turns about the round axis alone
     mug = Symmetry.none(np.zeros(3), near=np.stack([flip, about([0, 1, 0], 90)]))
     assert len(mug.near_tried) == 2
+
+
+def test_a_round_section_has_a_round_axis_and_an_l_bracket_none(bracket):
+    rng = np.random.default_rng(0)
+    can = np.column_stack([np.cos(t := rng.uniform(0, 2 * np.pi, 4000)), np.sin(t)])
+    can = np.column_stack([0.03 * can, rng.uniform(-0.1, 0.1, len(can))])  # long: z first
+    assert Frame.of(can).round_axis(0.1) == 0
+    disc = np.column_stack([0.1 * can[:, :2] / 0.03, 0.01 * can[:, 2] / 0.1])  # flat: z last
+    assert Frame.of(disc).round_axis(0.1) == 2
+    assert Frame.of(bracket.points).round_axis(0.1) is None
 
 
 def test_apart_keeps_the_first_of_rotations_alike():

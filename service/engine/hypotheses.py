@@ -5,7 +5,8 @@
   the hypotheses whose camera lies on the viewpoint's side of the part. A single camera's view
   has its own principal frame, not the whole part's, so this is what poses a depth image;
 - ``principal-axes``: the observation's and the whole reference's principal frames, four
-  proper sign flips (classical, no learning; what a full 360-degree cloud needs);
+  proper sign flips (classical, no learning; what a full 360-degree cloud needs), each also
+  turned about the third axis every 45 degrees where two spreads are alike;
 - ``mapped``: pairs of points that land on the same 2-D coordinate, solved by Kabsch inside
   RANSAC (the learned mapping's contribution);
 - ``paper``: the paper's least squares + SVD (eqs. 5-6) over all mapped pairs.
@@ -22,11 +23,16 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.engine.correspondences import mapped_pairs
+from service.engine.icp import rotation_vector
 from service.engine.principal_axes import PROPER_SIGN_FLIPS, Frame
 from service.engine.registration import paper_least_squares, ransac
 from service.engine.views import Views
 
 SOURCES = ("views", "principal-axes", "mapped", "paper")
+# two principal spreads within this share of each other: a round or square section, whose
+# principal axes in that plane are any two (a sample's, an observation's)
+ROUND_SPREADS = 0.1
+ROUND_TURN_DEG = 45.0  # the principal-axes matches are then also turned by every this much
 VIEWPOINT_AGREEMENT_DEG = 50.0  # a view hypothesis's camera within this of the viewpoint's
 
 
@@ -102,11 +108,23 @@ def from_views(
 
 
 def from_principal_axes(observed: Frame, reference: Frame) -> Hypotheses:
-    """The whole reference's principal frame carried onto the observation's."""
+    """The whole reference's principal frame carried onto the observation's; where two of the
+    reference's spreads are alike (``ROUND_SPREADS``), their axes are any two in their plane,
+    so each match is also turned about the third axis by every ``ROUND_TURN_DEG`` (a square
+    brick's, a flange's turn is otherwise left to chance and refinement)."""
+    frames = reference.axes[None]
+    unique = reference.round_axis(ROUND_SPREADS)
+    if unique is not None:
+        axis = reference.axes[:, unique]
+        angles = np.radians(np.arange(ROUND_TURN_DEG, 180.0, ROUND_TURN_DEG))
+        # a pose R turned by T about the axis (model frame) is the frame T^T A carried over
+        turns = [rotation_vector(axis * a) for a in angles]
+        frames = np.concatenate([frames, np.stack([t.T @ reference.axes for t in turns])])
     rotations, translations = _frame_matches(
-        observed, reference.axes[None], reference.centroid[None]
+        observed, frames, np.repeat(reference.centroid[None], len(frames), axis=0)
     )
-    return Hypotheses(rotations, translations, ("principal-axes",) * 4, np.full(4, -1))
+    count = len(translations)
+    return Hypotheses(rotations, translations, ("principal-axes",) * count, np.full(count, -1))
 
 
 def from_mapped_pairs(

@@ -31,11 +31,23 @@ class Frame:
 
     centroid: np.ndarray  # (3,)
     axes: np.ndarray  # (3, 3) columns, largest variance first (``principal_axes``)
+    spreads: np.ndarray  # (3,) the standard deviation along each axis
 
     @classmethod
     def of(cls, points: np.ndarray) -> Frame:
         centroid = points.mean(axis=0)
-        return cls(centroid, principal_axes(points - centroid))
+        centred = points - centroid
+        axes = principal_axes(centred)
+        spreads = np.sqrt(np.maximum(np.mean((centred @ axes) ** 2, axis=0), 0.0))
+        return cls(centroid, axes, spreads)
+
+    def round_axis(self, alike: float) -> int | None:
+        """The axis about which the other two spreads differ by at most ``alike`` of the
+        larger (their axes are then any two in their plane), if one does."""
+        for unique, (a, b) in ((2, (0, 1)), (0, (1, 2))):
+            if self.spreads[b] >= (1 - alike) * self.spreads[a]:
+                return unique
+        return None
 
 
 def flatness(points: np.ndarray) -> float:
