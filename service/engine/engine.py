@@ -813,6 +813,7 @@ def unit_ratio(factor: float) -> tuple[float, str, str] | None:
 EXPECTED = 128  # expected-visible points drawn per view for coverage
 QUICK_POINTS = 24  # observed and expected points of the quick look that screens hypotheses
 WHOLE_REFINED = 2  # hypotheses refined in each whole-part pass
+WHOLE_SCREENED = 4  # principal-axes hypotheses verified in the whole-part pass
 ENOUGH_BEHIND = 0.8  # a hypothesis this far below an excellent refined one is not refined
 FAR_BELOW = 0.5  # nor one below this share of the best hypothesis before refining
 RESCUE_BELOW = 0.7  # "fits well" for settings.rescued_parts: fit x coverage
@@ -869,8 +870,12 @@ class Search:
             entry = self.snapshot.entries[self.labels[row]]
             made = self.hypothesise(entry, chosen)
             self.clock.lap("hypothesise")
-            if len(made) > settings.screened:  # a quick look first, on a few points
-                made = made.take(self.screen(entry, made)[: settings.screened])
+            # a quick look first, on a few points; the whole part's principal axes alone keep
+            # as many as their four sign flips (the turns of a round section are alternatives
+            # to them, and each verified costs as much as one)
+            keep = WHOLE_SCREENED if chosen == ["principal-axes"] else settings.screened
+            if len(made) > keep:
+                made = made.take(self.screen(entry, made)[:keep])
             if len(made):
                 fits += self.verify(row, entry, made)
             self.clock.lap("verify")

@@ -23,16 +23,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.engine.correspondences import mapped_pairs
-from service.engine.icp import rotation_vector
 from service.engine.principal_axes import PROPER_SIGN_FLIPS, Frame
 from service.engine.registration import paper_least_squares, ransac
 from service.engine.views import Views
 
 SOURCES = ("views", "principal-axes", "mapped", "paper")
-# two principal spreads within this share of each other: a round or square section, whose
-# principal axes in that plane are any two (a sample's, an observation's)
-ROUND_SPREADS = 0.1
-ROUND_TURN_DEG = 45.0  # the principal-axes matches are then also turned by every this much
 VIEWPOINT_AGREEMENT_DEG = 50.0  # a view hypothesis's camera within this of the viewpoint's
 
 
@@ -108,18 +103,10 @@ def from_views(
 
 
 def from_principal_axes(observed: Frame, reference: Frame) -> Hypotheses:
-    """The whole reference's principal frame carried onto the observation's; where two of the
-    reference's spreads are alike (``ROUND_SPREADS``), their axes are any two in their plane,
-    so each match is also turned about the third axis by every ``ROUND_TURN_DEG`` (a square
-    brick's, a flange's turn is otherwise left to chance and refinement)."""
-    frames = reference.axes[None]
-    unique = reference.round_axis(ROUND_SPREADS)
-    if unique is not None:
-        axis = reference.axes[:, unique]
-        angles = np.radians(np.arange(ROUND_TURN_DEG, 180.0, ROUND_TURN_DEG))
-        # a pose R turned by T about the axis (model frame) is the frame T^T A carried over
-        turns = [rotation_vector(axis * a) for a in angles]
-        frames = np.concatenate([frames, np.stack([t.T @ reference.axes for t in turns])])
+    """The whole reference's principal frame carried onto the observation's, also turned about
+    the third axis where two of its spreads are alike (``Frame.matched``: a square brick's, a
+    flange's turn is otherwise left to chance and refinement)."""
+    frames = reference.matched
     rotations, translations = _frame_matches(
         observed, frames, np.repeat(reference.centroid[None], len(frames), axis=0)
     )

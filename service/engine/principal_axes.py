@@ -8,8 +8,15 @@ of each axis: four proper (determinant +1) choices.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+
+# two principal spreads within this share of each other: a round or square section, whose
+# principal axes in that plane are any two (a sample's, an observation's)
+ROUND_SPREADS = 0.1
+ROUND_TURN_DEG = 45.0  # the principal-axes matches are then also turned by every this much
 
 # The four sign patterns of a right-handed frame: diag(s) with det = +1.
 PROPER_SIGN_FLIPS = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=np.float64)
@@ -40,6 +47,20 @@ class Frame:
         axes = principal_axes(centred)
         spreads = np.sqrt(np.maximum(np.mean((centred @ axes) ** 2, axis=0), 0.0))
         return cls(centroid, axes, spreads)
+
+    @cached_property
+    def matched(self) -> np.ndarray:
+        """(K, 3, 3) the frames the principal-axes hypotheses carry onto an observation's:
+        this frame, and where two spreads are alike (``ROUND_SPREADS``) this frame turned about
+        the third axis by every ``ROUND_TURN_DEG``: those two axes are then any two in their
+        plane. A pose R turned by T about the axis (model frame) carries the frame T^T A."""
+        unique = self.round_axis(ROUND_SPREADS)
+        if unique is None:
+            return self.axes[None]
+        axis = self.axes[:, unique]
+        angles = np.radians(np.arange(ROUND_TURN_DEG, 180.0, ROUND_TURN_DEG))
+        turns = Rotation.from_rotvec(angles[:, None] * axis[None]).as_matrix()
+        return np.concatenate([self.axes[None], np.transpose(turns, (0, 2, 1)) @ self.axes])
 
     def round_axis(self, alike: float) -> int | None:
         """The axis about which the other two spreads differ by at most ``alike`` of the
