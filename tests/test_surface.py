@@ -303,10 +303,10 @@ def test_a_round_section_has_a_round_axis_and_an_l_bracket_none(bracket):
     rng = np.random.default_rng(0)
     can = np.column_stack([np.cos(t := rng.uniform(0, 2 * np.pi, 4000)), np.sin(t)])
     can = np.column_stack([0.03 * can, rng.uniform(-0.1, 0.1, len(can))])  # long: z first
-    assert Frame.of(can).round_axis(0.1) == 0
+    assert Frame.of(can).round_axis() == 0
     disc = np.column_stack([0.1 * can[:, :2] / 0.03, 0.01 * can[:, 2] / 0.1])  # flat: z last
-    assert Frame.of(disc).round_axis(0.1) == 2
-    assert Frame.of(bracket.points).round_axis(0.1) is None
+    assert Frame.of(disc).round_axis() == 2
+    assert Frame.of(bracket.points).round_axis() is None
 
 
 def test_apart_keeps_the_first_of_rotations_alike():

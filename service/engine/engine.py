@@ -551,7 +551,13 @@ class Engine:
         chosen = query.sources
         whole = [s for s in chosen if s == "principal-axes"]
         first = sure_first(scores, ranked)
-        fits = search.run({row: whole for row in shortlist}, query.refine, WHOLE_REFINED, first)
+        fits = search.run(
+            {row: whole for row in shortlist},
+            query.refine,
+            WHOLE_REFINED,
+            first,
+            screened=WHOLE_SCREENED,
+        )
         if "views" in chosen and not excellent(fits, settings):
             # 3b-6. Single views: the parts whose rendered views' grids look most like the
             # observation's, and eq. (4)'s; hypotheses from every rendered view of each.
@@ -813,7 +819,9 @@ def unit_ratio(factor: float) -> tuple[float, str, str] | None:
 EXPECTED = 128  # expected-visible points drawn per view for coverage
 QUICK_POINTS = 24  # observed and expected points of the quick look that screens hypotheses
 WHOLE_REFINED = 2  # hypotheses refined in each whole-part pass
-WHOLE_SCREENED = 4  # principal-axes hypotheses verified in the whole-part pass
+# principal-axes hypotheses verified in the whole-part pass: as many as their four sign flips
+# (the turns of a round section are alternatives to them, and each verified costs as one)
+WHOLE_SCREENED = 4
 ENOUGH_BEHIND = 0.8  # a hypothesis this far below an excellent refined one is not refined
 FAR_BELOW = 0.5  # nor one below this share of the best hypothesis before refining
 RESCUE_BELOW = 0.7  # "fits well" for settings.rescued_parts: fit x coverage
@@ -859,22 +867,21 @@ class Search:
         budget: int,
         first: int | None = None,
         rescue: bool = False,
+        screened: int | None = None,
     ) -> list[Fit]:
-        """Verified fits of every candidate row from its planned sources; the best ``budget``
-        refined, and the best of row ``first`` (eq. (4)'s first choice) in any case, and with
-        ``rescue`` more parts' when none fits well. Returns each row's best fit, and every
-        refined one."""
+        """Verified fits of every candidate row from its planned sources (the ``screened``
+        best of a quick look where it made more: ``settings.screened`` unless given); the best
+        ``budget`` refined, and the best of row ``first`` (eq. (4)'s first choice) in any case,
+        and with ``rescue`` more parts' when none fits well. Returns each row's best fit, and
+        every refined one."""
         settings = self.settings
+        keep = screened or settings.screened
         fits: list[Fit] = []
         for row, chosen in planned.items():
             entry = self.snapshot.entries[self.labels[row]]
             made = self.hypothesise(entry, chosen)
             self.clock.lap("hypothesise")
-            # a quick look first, on a few points; the whole part's principal axes alone keep
-            # as many as their four sign flips (the turns of a round section are alternatives
-            # to them, and each verified costs as much as one)
-            keep = WHOLE_SCREENED if chosen == ["principal-axes"] else settings.screened
-            if len(made) > keep:
+            if len(made) > keep:  # a quick look first, on a few points
                 made = made.take(self.screen(entry, made)[:keep])
             if len(made):
                 fits += self.verify(row, entry, made)
@@ -1106,14 +1113,15 @@ class Search:
             self.refine(candidate)
             turned.append(candidate)
         alike = [best] + [t for t in turned if t.score >= ALIKE * best.score]
-        residuals = [own]
-        if len(alike) > 1:  # told apart on every observed point: a notch is a few of them
-            residuals = self.residuals(
-                entry,
-                np.stack([t.rotation for t in alike]),
-                np.stack([t.translation for t in alike]),
-                self.observed,
-            ).tolist()
+        if len(alike) == 1:
+            return fits
+        # told apart on every observed point: a notch is a few of them
+        residuals = self.residuals(
+            entry,
+            np.stack([t.rotation for t in alike]),
+            np.stack([t.translation for t in alike]),
+            self.observed,
+        ).tolist()
         chosen = int(np.argmin(residuals))
         close = [
             f

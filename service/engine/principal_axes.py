@@ -54,7 +54,7 @@ class Frame:
         this frame, and where two spreads are alike (``ROUND_SPREADS``) this frame turned about
         the third axis by every ``ROUND_TURN_DEG``: those two axes are then any two in their
         plane. A pose R turned by T about the axis (model frame) carries the frame T^T A."""
-        unique = self.round_axis(ROUND_SPREADS)
+        unique = self.round_axis()
         if unique is None:
             return self.axes[None]
         axis = self.axes[:, unique]
@@ -62,13 +62,15 @@ class Frame:
         turns = Rotation.from_rotvec(angles[:, None] * axis[None]).as_matrix()
         return np.concatenate([self.axes[None], np.transpose(turns, (0, 2, 1)) @ self.axes])
 
-    def round_axis(self, alike: float) -> int | None:
-        """The axis about which the other two spreads differ by at most ``alike`` of the
-        larger (their axes are then any two in their plane), if one does."""
-        for unique, (a, b) in ((2, (0, 1)), (0, (1, 2))):
-            if self.spreads[b] >= (1 - alike) * self.spreads[a]:
-                return unique
-        return None
+    def round_about(self, k: int) -> bool:
+        """Whether the two spreads other than axis ``k``'s differ by at most ``ROUND_SPREADS``
+        of the larger: their axes are then any two in their plane."""
+        a, b = np.delete(self.spreads, k)
+        return abs(a - b) <= ROUND_SPREADS * max(a, b)
+
+    def round_axis(self) -> int | None:
+        """The largest or smallest axis the part is round about (``round_about``), if any."""
+        return next((k for k in (2, 0) if self.round_about(k)), None)
 
 
 def flatness(points: np.ndarray) -> float:

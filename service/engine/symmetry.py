@@ -47,7 +47,7 @@ from scipy.spatial.transform import Rotation
 
 from service.engine.alignment import orthonormal
 from service.engine.icp import Surface, icp, rotation_vector
-from service.engine.principal_axes import principal_axes
+from service.engine.principal_axes import Frame
 from service.engine.verification import patch_distance, surface_distance
 
 RULE = 3  # the rule's version a description records: a stored older one is found again
@@ -60,7 +60,6 @@ REVOLUTION_ANGLES_DEG = (37.0, 101.0, 163.0, 229.0, 293.0)
 # sag between facets: about 2 % of the scale for a ring of 16 facets; turns about a revolution's
 # axis are held to twice the tolerance (a gear's teeth, half a pitch off, still fail by far)
 REVOLUTION_SLACK = 2.0
-ROUND_AXES = 0.1  # the other two spreads (standard deviations) differ by at most this share
 MAX_FOLD = 8
 RANDOM_STARTS = 12
 SAME_DEG = 5.0  # two found rotations this close are one
@@ -110,7 +109,7 @@ class Symmetry:
         if shared.max() < ROUND_TURNS:  # no nearly round axis
             return self.near
         axis = axes[int(np.argmax(shared))]
-        round_ = np.abs(axes @ axis) > np.cos(np.radians(SAME_DEG))
+        round_ = about[int(np.argmax(shared))]
         # a turn about another axis, then one about the round axis (a shaft flipped end for
         # end, then turned about its own axis)
         others = self.near[~round_]
@@ -277,9 +276,8 @@ def _fixed_point(transforms: list[tuple[np.ndarray, np.ndarray]], near: np.ndarr
 def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> Symmetry:
     """The reference's rotational symmetry (see the module's docstring)."""
     points = surface.points
-    centroid = points.mean(axis=0)
-    frame = principal_axes(points - centroid)
-    spread = np.sqrt(np.maximum(np.var((points - centroid) @ frame, axis=0), 0))
+    principal = Frame.of(points)
+    centroid, frame = principal.centroid, principal.axes
     chosen = points[rng.choice(len(points), size=min(512, len(points)), replace=False)]
     noise, gate = 0.002 * scale, 0.3 * scale
     own = _SelfFit.of(surface, scale)
@@ -318,8 +316,7 @@ def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> S
     round_turns: list[np.ndarray] = []  # turns about a nearly round axis that nearly fit
 
     for k in range(3):
-        others = [spread[j] for j in range(3) if j != k]
-        if abs(others[0] - others[1]) > ROUND_AXES * max(others):
+        if not principal.round_about(k):
             continue
         # a sample's principal axis is off by a degree or so: a quarter turn about it, refined
         # onto the reference itself, turns about the true axis if there is one
@@ -429,12 +426,11 @@ def _group(found: list[Transform], fits) -> list[Transform]:
 def apart(rotations: np.ndarray, degrees: float, count: int) -> np.ndarray:
     """Indices of the first ``count`` of ``rotations`` (K, 3, 3), in order, that lie more than
     ``degrees`` from every earlier one kept."""
-    close = _near(rotations, rotations, degrees)
     kept: list[int] = []
-    for k in range(len(rotations)):
+    for k in range(len(rotations)):  # each against the kept alone: most stop after a few
         if len(kept) == count:
             break
-        if not close[k, kept].any():
+        if not kept or not _near(rotations[k : k + 1], rotations[kept], degrees).any():
             kept.append(k)
     return np.asarray(kept, dtype=np.intp)
 
