@@ -295,8 +295,15 @@ def test_a_nearly_round_part_is_tried_at_fine_turns_and_flipped_then_turned():
     assert among(about([0, 0, 1], FINE_DEG)) and among(about([0, 0, 1], -FINE_DEG))
     assert among(flip @ about([0, 0, 1], 40 + FINE_DEG))
     assert not among(about([1, 0, 0], FINE_DEG))  # fine turns about the round axis alone
+    # the turns of the two kinds: those that reverse the axis are the flips
+    assert np.allclose(np.abs(shaft.round_axis), [0, 0, 1])
+    ends = (tried @ np.array([0, 0, 1.0]))[:, 2]  # where each turn sends the axis
+    assert np.all(np.abs(ends) > 0.99)  # kept or reversed
+    assert np.array_equal(shaft.near_reversing, ends < 0)
+    assert 0 < shaft.near_reversing.sum() < len(tried)
     mug = Symmetry.none(np.zeros(3), near=np.stack([flip, about([0, 1, 0], 90)]))
     assert len(mug.near_tried) == 2
+    assert mug.round_axis is None and not mug.near_reversing.any()
 
 
 def test_a_round_section_has_a_round_axis_and_an_l_bracket_none(bracket):

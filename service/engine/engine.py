@@ -215,7 +215,8 @@ DIFFERENT_DEG = 10.0  # poses this far apart (symmetry accounted for) are differ
 ALIKE = 0.9  # ... and fit alike when within this share of the best's fit x coverage
 MAX_ALTERNATIVES = 3
 NEAR_SOURCE = "near-symmetry"  # the hypothesis of a pose found by turning the best one
-NEAR_SCREENED = 8  # turned poses measured again on every observed point before refining
+NEAR_PRESCREENED = 32  # turned poses of a kind measured on the corrected distance ...
+NEAR_SCREENED = 8  # ... of which these are measured again on every observed point
 SCREEN_ALIKE = 1.5  # a turned pose this much farther before refining is not refined
 RESIDUAL_ALIKE = 1.15  # a turned pose this much farther from the surface is no alternative
 # another pose that places the part closer than this share of its scale to the answer's (a
@@ -1080,13 +1081,15 @@ class Search:
         winner.rotation, winner.translation = self.icp(winner, extra, self.observed)
         return True
 
-    def resolve_near(self, fits: list[Fit]) -> list[Fit]:
+    def resolve_near(self, fits: list[Fit], repeat: bool = True) -> list[Fit]:
         """``fits`` (best first) with the best pose tried turned by each near-symmetry of its
         part (about the part's centre, in the model frame), each refined: a notch or a cross
         hole may be all that tells those poses apart, too little to move fit x coverage. Of
         the poses that fit alike, the one whose points lie closest to the surface (the mean
         distance, cut at three tolerances) goes first; those as close as it (within
-        ``RESIDUAL_ALIKE``) stay as alternatives, the clearly farther ones go."""
+        ``RESIDUAL_ALIKE``) stay as alternatives, the clearly farther ones go. Where a pose
+        turned end for end goes first, its own turns are tried once more (``repeat``): the
+        flip was found at some turn about the axis, its cross hole's perhaps elsewhere."""
         best = fits[0]
         entry = self.snapshot.entries[self.labels[best.row]]
         symmetry = entry.symmetry
@@ -1097,16 +1100,24 @@ class Search:
         rotations = np.einsum("ij,njk->nik", best.rotation, turns)
         translations = best.translation + (centre - turns @ centre) @ best.rotation.T
         # screened first: the few turned poses nearest the surface are refined, unless even
-        # they lie clearly farther from it than the best. Nearest on the refinement's sample,
-        # no two a fine turn of each other (several of one would crowd out the others), then
-        # nearest on every observed point: a notch or a cross hole is a few of them
+        # they lie clearly farther from it than the best; each kind on its own (a nearly
+        # round part's turns about its axis, and its flips end for end), as the many turns
+        # about the axis, alike all round, would crowd out a flip
         screened = self.residuals(entry, rotations, translations, corrected=False)
         (own,) = self.residuals(entry, best.rotation[None], best.translation[None], corrected=False)
         order = np.argsort(screened)
         order = order[screened[order] <= SCREEN_ALIKE * own]
-        order = order[apart(turns[order], 2 * FINE_DEG, NEAR_SCREENED)]
+        reversing = symmetry.near_reversing
+        kinds = [order[~reversing[order]], order[reversing[order]]]
+        kinds = [self.screen_near(entry, kind, rotations, translations, turns) for kind in kinds]
+        # then nearest on every observed point (a notch or a cross hole is a few of them): the
+        # nearest of each kind refined first, then the nearest others
+        order = np.concatenate(kinds)
         again = self.residuals(entry, rotations[order], translations[order], self.observed)
-        order = order[np.argsort(again, kind="stable")][: self.settings.near_refined]
+        order = order[np.argsort(again, kind="stable")]
+        firsts = np.concatenate([order[reversing[order] == flip][:1] for flip in (False, True)])
+        order = np.concatenate([firsts, order[~np.isin(order, firsts)]])
+        order = order[: self.settings.near_refined]
         turned = []
         for k in order:
             candidate = Fit(best.row, rotations[k], translations[k], NEAR_SOURCE, best.view, 0, 0)
@@ -1128,7 +1139,29 @@ class Search:
             for f, r in zip(alike, residuals, strict=True)
             if f is not alike[chosen] and r <= RESIDUAL_ALIKE * residuals[chosen]
         ]
-        return [alike[chosen], *close, *fits[1:]]
+        answer = [alike[chosen], *close, *fits[1:]]
+        flipped = [t for t, k in zip(turned, order, strict=True) if reversing[k]]
+        if repeat and any(alike[chosen] is t for t in flipped):
+            return self.resolve_near(answer, repeat=False)
+        return answer
+
+    def screen_near(
+        self,
+        entry: Entry,
+        order: np.ndarray,
+        rotations: np.ndarray,
+        translations: np.ndarray,
+        turns: np.ndarray,
+    ) -> np.ndarray:
+        """Of the turned poses ``order`` (nearest the surface first, on the distance field's
+        own answer), the ``NEAR_SCREENED`` nearest on the corrected distance, no two a fine
+        turn of each other (several of one would crowd out the others). The field's own
+        answer is an eighth of the time but blind to a cross hole: it keeps
+        ``NEAR_PRESCREENED`` of them."""
+        order = order[:NEAR_PRESCREENED]
+        closer = self.residuals(entry, rotations[order], translations[order])
+        order = order[np.argsort(closer, kind="stable")]
+        return order[apart(turns[order], 2 * FINE_DEG, NEAR_SCREENED)]
 
     def residuals(
         self,

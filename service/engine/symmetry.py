@@ -95,31 +95,45 @@ class Symmetry:
         return cls("none", np.asarray(centroid, np.float64), np.eye(3)[None], near=near)
 
     @cached_property
-    def near_tried(self) -> np.ndarray:
-        """(K', 3, 3) the turns an answer is tried at: ``near``; where at least
-        ``ROUND_TURNS`` of them turn about one axis (a nearly round part), also each other
-        near turn followed by each of those, and every one of these and the identity turned
-        by ``FINE_DEG`` either way about that axis."""
+    def round_axis(self) -> np.ndarray | None:
+        """(3,) the axis that at least ``ROUND_TURNS`` of the near turns turn about (a nearly
+        round part: the flange with its notch, the shaft with its cross hole), or None."""
         if not len(self.near):
-            return self.near
+            return None
         vectors = Rotation.from_matrix(self.near).as_rotvec()
         axes = vectors / np.maximum(np.linalg.norm(vectors, axis=1, keepdims=True), 1e-12)
-        about = np.abs(axes @ axes.T) > np.cos(np.radians(SAME_DEG))
-        shared = about.sum(axis=1)
-        if shared.max() < ROUND_TURNS:  # no nearly round axis
+        shared = (np.abs(axes @ axes.T) > np.cos(np.radians(SAME_DEG))).sum(axis=1)
+        return axes[int(np.argmax(shared))] if shared.max() >= ROUND_TURNS else None
+
+    @cached_property
+    def near_tried(self) -> np.ndarray:
+        """(K', 3, 3) the turns an answer is tried at: ``near``; about a ``round_axis``, also
+        each other near turn followed by each near turn about it, and every one of these and
+        the identity turned by ``FINE_DEG`` either way about that axis."""
+        axis = self.round_axis
+        if axis is None:
             return self.near
-        axis = axes[int(np.argmax(shared))]
-        round_ = about[int(np.argmax(shared))]
+        about = _near_axis(self.near, axis)
         # a turn about another axis, then one about the round axis (a shaft flipped end for
         # end, then turned about its own axis)
-        others = self.near[~round_]
+        others = self.near[~about]
         turns = np.concatenate(
-            [self.near, np.einsum("oij,rjk->orik", others, self.near[round_]).reshape(-1, 3, 3)]
+            [self.near, np.einsum("oij,rjk->orik", others, self.near[about]).reshape(-1, 3, 3)]
         )
         turns = turns[apart(turns, SAME_DEG, len(turns))]
         fine = Rotation.from_rotvec(np.stack([axis, -axis]) * np.radians(FINE_DEG)).as_matrix()
         starts = np.concatenate([np.eye(3)[None], turns])
         return np.concatenate([turns, np.einsum("sij,fjk->sfik", starts, fine).reshape(-1, 3, 3)])
+
+    @cached_property
+    def near_reversing(self) -> np.ndarray:
+        """(K',) bool: which of ``near_tried`` turn the ``round_axis`` end for end (none
+        without one). Those poses of a nearly round part fit alike only where both ends look
+        alike; the other kind, turns about the axis, fit alike all round."""
+        axis = self.round_axis
+        if axis is None:
+            return np.zeros(len(self.near_tried), dtype=bool)
+        return (self.near_tried @ axis) @ axis < 0
 
     def describe(self) -> dict:
         """The JSON description a reference shows (and the store keeps)."""
@@ -433,6 +447,13 @@ def apart(rotations: np.ndarray, degrees: float, count: int) -> np.ndarray:
         if not kept or not _near(rotations[k : k + 1], rotations[kept], degrees).any():
             kept.append(k)
     return np.asarray(kept, dtype=np.intp)
+
+
+def _near_axis(turns: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """(K,) bool: which of ``turns`` turn about ``axis`` (either way)."""
+    vectors = Rotation.from_matrix(turns).as_rotvec()
+    unit = vectors / np.maximum(np.linalg.norm(vectors, axis=1, keepdims=True), 1e-12)
+    return np.abs(unit @ axis) > np.cos(np.radians(SAME_DEG))
 
 
 def _near(first: np.ndarray, second: np.ndarray, degrees: float = SAME_DEG) -> np.ndarray:
