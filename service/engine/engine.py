@@ -1099,6 +1099,7 @@ class Search:
         turns = symmetry.near_tried
         rotations = np.einsum("ij,njk->nik", best.rotation, turns)
         translations = best.translation + (centre - turns @ centre) @ best.rotation.T
+        views = self.turned_views(entry, best.view, turns)
         # screened first: the few turned poses nearest the surface are refined, unless even
         # they lie clearly farther from it than the best; each kind on its own (a nearly
         # round part's turns about its axis, and its flips end for end), as the many turns
@@ -1120,7 +1121,7 @@ class Search:
         order = order[: self.settings.near_refined]
         turned = []
         for k in order:
-            candidate = Fit(best.row, rotations[k], translations[k], NEAR_SOURCE, best.view, 0, 0)
+            candidate = Fit(best.row, rotations[k], translations[k], NEAR_SOURCE, views[k], 0, 0)
             self.refine(candidate)
             turned.append(candidate)
         alike = [best] + [t for t in turned if t.score >= ALIKE * best.score]
@@ -1144,6 +1145,18 @@ class Search:
         if repeat and any(alike[chosen] is t for t in flipped):
             return self.resolve_near(answer, repeat=False)
         return answer
+
+    @staticmethod
+    def turned_views(entry: Entry, view: int, turns: np.ndarray) -> list[int]:
+        """The rendered view a pose turned by each of ``turns`` (K, 3, 3) expects to be seen
+        from, where the unturned pose expects ``view`` (-1: the whole part): the camera's
+        direction in the model frame turns the other way. Without a viewpoint, coverage is
+        measured against it; the unturned pose's view would judge a flange turned by half
+        a turn by the side the camera does not see."""
+        if view < 0:
+            return [view] * len(turns)
+        toward = np.einsum("nji,j->ni", turns, entry.views.directions[view])  # N^T d
+        return np.argmax(toward @ entry.views.directions.T, axis=1).tolist()
 
     def screen_near(
         self,
