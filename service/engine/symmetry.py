@@ -100,8 +100,7 @@ class Symmetry:
         round part: the flange with its notch, the shaft with its cross hole), or None."""
         if not len(self.near):
             return None
-        vectors = Rotation.from_matrix(self.near).as_rotvec()
-        axes = vectors / np.maximum(np.linalg.norm(vectors, axis=1, keepdims=True), 1e-12)
+        axes = _axes(self.near)
         shared = (np.abs(axes @ axes.T) > np.cos(np.radians(SAME_DEG))).sum(axis=1)
         return axes[int(np.argmax(shared))] if shared.max() >= ROUND_TURNS else None
 
@@ -449,11 +448,15 @@ def apart(rotations: np.ndarray, degrees: float, count: int) -> np.ndarray:
     return np.asarray(kept, dtype=np.intp)
 
 
+def _axes(turns: np.ndarray) -> np.ndarray:
+    """(K, 3) the unit axis each of ``turns`` (K, 3, 3) turns about."""
+    vectors = Rotation.from_matrix(turns).as_rotvec()
+    return vectors / np.maximum(np.linalg.norm(vectors, axis=1, keepdims=True), 1e-12)
+
+
 def _near_axis(turns: np.ndarray, axis: np.ndarray) -> np.ndarray:
     """(K,) bool: which of ``turns`` turn about ``axis`` (either way)."""
-    vectors = Rotation.from_matrix(turns).as_rotvec()
-    unit = vectors / np.maximum(np.linalg.norm(vectors, axis=1, keepdims=True), 1e-12)
-    return np.abs(unit @ axis) > np.cos(np.radians(SAME_DEG))
+    return np.abs(_axes(turns) @ axis) > np.cos(np.radians(SAME_DEG))
 
 
 def _near(first: np.ndarray, second: np.ndarray, degrees: float = SAME_DEG) -> np.ndarray:
