@@ -216,7 +216,7 @@ ALIKE = 0.9  # ... and fit alike when within this share of the best's fit x cove
 MAX_ALTERNATIVES = 3
 NEAR_SOURCE = "near-symmetry"  # the hypothesis of a pose found by turning the best one
 NEAR_PRESCREENED = 32  # turned poses of a kind measured on the corrected distance ...
-NEAR_SCREENED = 8  # ... of which these are measured again on every observed point
+NEAR_SCREENED = 8  # ... of which these are measured again on the network's sample
 SCREEN_ALIKE = 1.5  # a turned pose this much farther before refining is not refined
 RESIDUAL_ALIKE = 1.15  # a turned pose this much farther from the surface is no alternative
 # another pose that places the part closer than this share of its scale to the answer's (a
@@ -1070,11 +1070,11 @@ class Search:
 
     def polish(self, winner: Fit) -> bool:
         """Finish the winner's pose where the search's budget cut its refinement short: up to
-        ``polish_iterations`` more, on every observed point (the search refines on a sample
-        of ``icp_points``, whose own scatter limits the pose). Only the pose changes: its fit
-        and coverage stay the search's, which the confidence was calibrated on (measured again
-        at the finished pose, they let a foreign part's view past the threshold). Whether it
-        ran."""
+        ``polish_iterations`` more, on the network's sample of the observation (the search
+        refines on a smaller one of ``icp_points``, whose own scatter limits the pose). Only
+        the pose changes: its fit and coverage stay the search's, which the confidence was
+        calibrated on (measured again at the finished pose, they let a foreign part's view
+        past the threshold). Whether it ran."""
         extra = self.settings.polish_iterations
         if not extra or not winner.refined or winner.settled:
             return False
@@ -1111,7 +1111,7 @@ class Search:
         reversing = symmetry.near_reversing
         kinds = [order[~reversing[order]], order[reversing[order]]]
         kinds = [self.screen_near(entry, kind, rotations, translations, turns) for kind in kinds]
-        # then nearest on every observed point (a notch or a cross hole is a few of them): the
+        # then nearest on the network's sample (a notch or a cross hole is a few of them): the
         # nearest of each kind refined first, then the nearest others
         order = np.concatenate(kinds)
         again = self.residuals(entry, rotations[order], translations[order], self.observed)
@@ -1127,7 +1127,7 @@ class Search:
         alike = [best] + [t for t in turned if t.score >= ALIKE * best.score]
         if len(alike) == 1:
             return fits
-        # told apart on every observed point: a notch is a few of them
+        # told apart on the network's sample: a notch is a few of its points
         residuals = self.residuals(
             entry,
             np.stack([t.rotation for t in alike]),
