@@ -268,14 +268,16 @@ def test_the_canonical_pose_is_one_matrix_for_all_equivalent_poses():
     assert described.kind == "discrete" and len(described.rotations) == 4
 
 
+def about(axis, degrees) -> np.ndarray:
+    """The rotation by ``degrees`` about ``axis`` (a unit vector)."""
+    return Rotation.from_rotvec(np.radians(degrees) * np.asarray(axis, float)).as_matrix()
+
+
 def test_a_nearly_round_part_is_tried_at_fine_turns_and_flipped_then_turned():
     """A shaft's near turns: every 10 degrees about its axis (z), and an end-for-end flip
     (about x). An answer is tried at each, at each flip then turned about the axis, and at
     each (and at itself) turned FINE_DEG either way about the axis; a part with no nearly
     round axis is tried at its near turns alone."""
-
-    def about(axis, degrees):
-        return Rotation.from_rotvec(np.radians(degrees) * np.asarray(axis, float)).as_matrix()
 
     flip = about([1, 0, 0], 180)
     turns = [about([0, 0, 1], a) for a in range(10, 180, 10)]
@@ -317,10 +319,7 @@ def test_a_round_section_has_a_round_axis_and_an_l_bracket_none(bracket):
 
 
 def test_apart_keeps_the_first_of_rotations_alike():
-    def about(degrees):
-        return Rotation.from_rotvec([0, 0, np.radians(degrees)]).as_matrix()
-
-    rotations = np.stack([about(a) for a in (0, 2, 30, 31, 60, 90)])
+    rotations = np.stack([about([0, 0, 1], a) for a in (0, 2, 30, 31, 60, 90)])
     assert apart(rotations, 5.0, 10).tolist() == [0, 2, 4, 5]
     assert apart(rotations, 5.0, 2).tolist() == [0, 2]
 

@@ -1006,7 +1006,7 @@ class Search:
         if self.viewpoint is not None:
             toward = self.viewpoint[None] - made.translations
             implied = np.einsum("hij,hi->hj", made.rotations, toward)  # R^T v, model frame
-            views = np.argmax(implied @ entry.views.directions.T, axis=1)
+            views = entry.views.nearest(implied)
         return entry.surface.points[entry.expected[views, :count]]
 
     def verify(self, row: int, entry: Entry, made: Hypotheses, count: int | None = None):
@@ -1099,7 +1099,9 @@ class Search:
         turns = symmetry.near_tried
         rotations = np.einsum("ij,njk->nik", best.rotation, turns)
         translations = best.translation + (centre - turns @ centre) @ best.rotation.T
-        views = self.turned_views(entry, best.view, turns)
+        # without a viewpoint, coverage is measured against the view each turned pose expects:
+        # the unturned pose's would judge a flange turned by half a turn by its hidden side
+        views = entry.views.turned(best.view, turns)
         # screened first: the few turned poses nearest the surface are refined, unless even
         # they lie clearly farther from it than the best; each kind on its own (a nearly
         # round part's turns about its axis, and its flips end for end), as the many turns
@@ -1145,18 +1147,6 @@ class Search:
         if repeat and any(alike[chosen] is t for t in flipped):
             return self.resolve_near(answer, repeat=False)
         return answer
-
-    @staticmethod
-    def turned_views(entry: Entry, view: int, turns: np.ndarray) -> list[int]:
-        """The rendered view a pose turned by each of ``turns`` (K, 3, 3) expects to be seen
-        from, where the unturned pose expects ``view`` (-1: the whole part): the camera's
-        direction in the model frame turns the other way. Without a viewpoint, coverage is
-        measured against it; the unturned pose's view would judge a flange turned by half
-        a turn by the side the camera does not see."""
-        if view < 0:
-            return [view] * len(turns)
-        toward = np.einsum("nji,j->ni", turns, entry.views.directions[view])  # N^T d
-        return np.argmax(toward @ entry.views.directions.T, axis=1).tolist()
 
     def screen_near(
         self,

@@ -170,3 +170,16 @@ class Views:
             frames[k] = principal_axes(chosen - centroids[k])
             radii[k] = np.sqrt(((chosen - centroids[k]) ** 2).sum(axis=1).max())
         return cls(directions(count), visible, centroids, frames, radii)
+
+    def nearest(self, toward: np.ndarray) -> np.ndarray:
+        """(H,) the view whose camera direction is nearest each of ``toward`` (H, 3), camera
+        directions in the model frame (not necessarily unit)."""
+        return np.argmax(toward @ self.directions.T, axis=1)
+
+    def turned(self, view: int, turns: np.ndarray) -> list[int]:
+        """The view a pose turned by each of ``turns`` (K, 3, 3, in the model frame) expects
+        to be seen from, where the unturned pose expects ``view`` (-1: the whole part): the
+        camera's direction in the model frame turns the other way (N^T d)."""
+        if view < 0:
+            return [view] * len(turns)
+        return self.nearest(np.einsum("nji,j->ni", turns, self.directions[view])).tolist()
