@@ -17,7 +17,13 @@ from service.engine.principal_axes import Frame
 from service.engine.sampling import sample_surface_faces
 from service.engine.surroundings import groups
 from service.engine.symmetry import FINE_DEG, Symmetry, _group, apart, find_symmetry
-from service.engine.verification import Occupancy, coverage, dilate_along, fit
+from service.engine.verification import (
+    Occupancy,
+    coverage,
+    dilate_along,
+    fit,
+    surface_distance,
+)
 from service.engine.views import (
     Views,
     cloud_spacing,
@@ -84,6 +90,22 @@ def test_the_distance_field_agrees_with_a_kd_tree_within_half_a_voxel(duck_point
     far = duck_points.mean(axis=0) + np.array([10.0, 0, 0]) * scale  # past the grid's edge
     index = field.lookup(far[None])[0]
     assert np.linalg.norm(far - duck_points[index]) >= cKDTree(duck_points).query(far)[0]
+
+
+def test_a_point_on_a_thin_wall_is_measured_to_its_own_side():
+    """A plate about as thick as the samples' spacing: the sample nearest a point on one face
+    is often on the other, with the point behind it; verification measures to the nearest
+    sample the point lies in front of."""
+    plate = trimesh.creation.box(extents=(0.1, 0.1, 0.002))  # 2 mm; samples ~1.5 mm apart
+    surface = surface_of(plate)
+    rng = np.random.default_rng(3)
+    on_top = np.column_stack([rng.uniform(-0.045, 0.045, (2000, 2)), np.full(2000, 0.001)])
+    distance, facing = surface_distance(surface, on_top)
+    assert np.mean(surface.points[facing, 2] > 0) > 0.95  # the top face's samples
+    assert np.mean(distance < 0.0005) > 0.93  # within a quarter of the wall
+    # the nearest sample alone is often on the other face: what this guards against
+    _, nearest = surface_distance(surface, on_top, "nearest")
+    assert np.mean(surface.points[nearest, 2] < 0) > 0.1
 
 
 @pytest.mark.parametrize("from_mesh", [True, False], ids=["mesh", "cloud"])

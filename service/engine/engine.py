@@ -37,7 +37,7 @@ from service.engine.principal_axes import Frame, flatness
 from service.engine.reference import Reference
 from service.engine.surroundings import set_aside_surroundings
 from service.engine.symmetry import FINE_DEG, Symmetry, apart, find_symmetry
-from service.engine.verification import Occupancy, coverage, fit, surface_distance
+from service.engine.verification import Lookup, Occupancy, coverage, fit, surface_distance
 from service.engine.views import (
     CAMERA_DISTANCE,
     Views,
@@ -148,7 +148,7 @@ class Entry:
         turn = pose.rotation.T @ other.rotation  # ``other`` in ``pose``'s model frame
         shift = (other.translation - pose.translation) @ pose.rotation
         distance, _ = surface_distance(
-            self.surface, self.surface.points[self.expected[-1]] @ turn.T + shift
+            self.surface, self.surface.points[self.expected[-1]] @ turn.T + shift, "nearest"
         )
         return float(distance.mean()) / self.reference.scale
 
@@ -910,7 +910,7 @@ class Search:
             made.rotations,
             made.translations,
             tolerance,
-            corrected=False,
+            lookup="field",
         )
         expected = self.expected(entry, made, QUICK_POINTS)
         covered = coverage(expected, made.rotations, made.translations, self.occupancy)
@@ -1020,6 +1020,10 @@ class Search:
             made.rotations,
             made.translations,
             tolerance,
+            # the cheap check of many poses to the nearest sample; the refined one, whose fit
+            # the confidence weighs, to the facing one (measured: to the nearest sample, 4 and
+            # 5 fewer right answers accepted on depth views and on tables, 4 on full clouds)
+            "nearest" if count is None else "facing",
         )
         expected = self.expected(entry, made, count or settings.coverage_points)
         covered = coverage(expected, made.rotations, made.translations, self.occupancy)
@@ -1106,8 +1110,8 @@ class Search:
         # they lie clearly farther from it than the best; each kind on its own (a nearly
         # round part's turns about its axis, and its flips end for end), as the many turns
         # about the axis, alike all round, would crowd out a flip
-        screened = self.residuals(entry, rotations, translations, corrected=False)
-        (own,) = self.residuals(entry, best.rotation[None], best.translation[None], corrected=False)
+        screened = self.residuals(entry, rotations, translations, lookup="field")
+        (own,) = self.residuals(entry, best.rotation[None], best.translation[None], lookup="field")
         order = np.argsort(screened)
         order = order[screened[order] <= SCREEN_ALIKE * own]
         reversing = symmetry.near_reversing
@@ -1172,15 +1176,15 @@ class Search:
         rotations: np.ndarray,
         translations: np.ndarray,
         points: np.ndarray | None = None,
-        corrected: bool = True,
+        lookup: Lookup = "nearest",
     ):
         """(H,) mean distance of ``points`` (the refinement's unless given) to the surface at
-        each of H poses, each cut at three tolerances, over the part's scale (``corrected``:
-        ``surface_distance``'s; without, an eighth of the time, for screening)."""
+        each of H poses, each cut at three tolerances, over the part's scale, to the nearest
+        samples (``lookup``; the field's own answer, a fifth of the time, for screening)."""
         scale = entry.reference.scale
         points = self.refine_on if points is None else points
         model = np.matmul(points[None] - translations[:, None], rotations)
-        distance, _ = surface_distance(entry.surface, model, corrected)
+        distance, _ = surface_distance(entry.surface, model, lookup)
         return np.minimum(distance, 3 * self.settings.tolerance * scale).mean(axis=1) / scale
 
     def candidate_fits(self, fits: list[Fit], scores: np.ndarray) -> list[CandidateFit]:

@@ -235,7 +235,7 @@ class _SelfFit:
 
     def moved(self, surface: Surface, points: np.ndarray, rotation, translation) -> np.ndarray:
         """Distance of each of ``points`` moved by (R, t) to the reference's surface."""
-        return surface_distance(surface, points @ rotation.T + translation)[0]
+        return surface_distance(surface, points @ rotation.T + translation, "nearest")[0]
 
     def fits(self, distance: np.ndarray, slack: float = 1.0) -> bool:
         """Whether points at these distances (``moved``) lie on the surface like the
@@ -259,7 +259,7 @@ def _far(distance: np.ndarray, tolerance: float) -> float:
 
 def _left_out_distance(surface: Surface) -> np.ndarray:
     """Each sample's distance to the surface the other samples describe (the tangent patch of
-    the nearest other one, as ``surface_distance`` measures)."""
+    the nearest other one, as ``surface_distance`` measures to the nearest samples)."""
     points, others = surface.points, surface.neighbours[:, 1:]
     offsets = points[:, None, :] - points[others]
     closest = np.argmin(np.einsum("nki,nki->nk", offsets, offsets), axis=1)
@@ -311,7 +311,7 @@ def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> S
             chosen[:QUICK_POINTS], surface, start, _about(start, centre), noise, gate, QUICK
         )
         moved = chosen[:QUICK_POINTS] @ rotation.T + translation
-        near, _ = surface_distance(surface, moved)
+        near, _ = surface_distance(surface, moved, "nearest")
         if np.mean(near < FAR * own.tolerance) < NEAR * quick_share:
             return None
         rotation, translation, _ = icp(chosen, surface, rotation, translation, noise, gate, 30)
