@@ -23,7 +23,7 @@ from service.engine.alignment import to_model_frame
 from service.engine.distance_field import DistanceField
 
 NEIGHBOURS = 8  # a sample's neighbours searched when correcting the field's answer
-BEHIND = 1.0  # a point this many sample spacings behind a sample's tangent plane is not its
+BEHIND = 1.0  # a point more sample spacings than this behind a tangent plane is not on it
 TUKEY = 4.685  # Tukey's constant: 95 % efficiency on Gaussian residuals
 DAMPING = 1e-6  # relative to the system's trace
 CLOSE_RAD, CLOSE = 0.01, 0.5  # steps this small switch to the corrected nearest samples
