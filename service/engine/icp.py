@@ -50,32 +50,26 @@ class Surface:
         spacing = float(np.median(distances[:, 1]))
         return cls(points, normals, field, neighbours.astype(np.intp), spacing)
 
-    def nearest(self, points: np.ndarray) -> np.ndarray:
+    def nearest(self, points: np.ndarray, facing: bool = False) -> np.ndarray:
         """Index of the surface sample nearest each of ``points`` (..., 3): the distance
         field's answer, corrected among that sample's neighbours. The field names the sample
         nearest the voxel's centre, which may be a voxel away from the point's own nearest;
-        that one is almost always among its neighbours."""
-        first = self.field.lookup(points)
-        candidates = self.neighbours[first]  # (..., k)
-        offsets = self.points[candidates] - points[..., None, :]
-        best = np.argmin(np.einsum("...ki,...ki->...k", offsets, offsets), axis=-1)
-        return np.take_along_axis(candidates, best[..., None], axis=-1)[..., 0]
+        that one is almost always among its neighbours.
 
-    def facing(self, points: np.ndarray) -> np.ndarray:
-        """Index of the surface sample nearest each of ``points`` (..., 3) among those the point
-        lies in front of (not more than ``BEHIND`` spacings behind its tangent plane), of the
-        distance field's sample and its neighbours; the nearest where it is behind them all.
-        A point is seen on the outside of its surface; across a thin wall (a hollow brick's,
-        a cup's) the nearest sample is often on the far side, a wall's thickness from the
-        point's own plane, with the point behind it. Measured at the true pose, 7-8 % of a
-        hollow brick's full-cloud points lay beyond the tolerance from their nearest sample's
-        tangent patch, 4-5 % from the facing one's."""
+        With ``facing``, the nearest of those the point lies in front of (not more than
+        ``BEHIND`` spacings behind its tangent plane; the nearest where it is behind them
+        all). A point is seen on the outside of its surface; across a thin wall (a hollow
+        brick's, a cup's) the nearest sample is often on the far side, a wall's thickness
+        from the point's own plane, with the point behind it. Measured at the true pose, 7-8 %
+        of a hollow brick's full-cloud points lay beyond the tolerance from their nearest
+        sample's tangent patch, 4-5 % from the facing one's."""
         candidates = self.neighbours[self.field.lookup(points)]  # (..., k)
         offsets = points[..., None, :] - self.points[candidates]
         square = np.einsum("...ki,...ki->...k", offsets, offsets)
-        along = np.einsum("...ki,...ki->...k", offsets, self.normals[candidates])
-        behind = along < -BEHIND * self.spacing
-        square[behind & ~behind.all(axis=-1, keepdims=True)] = np.inf
+        if facing:
+            along = np.einsum("...ki,...ki->...k", offsets, self.normals[candidates])
+            behind = along < -BEHIND * self.spacing
+            square[behind & ~behind.all(axis=-1, keepdims=True)] = np.inf
         best = np.argmin(square, axis=-1)
         return np.take_along_axis(candidates, best[..., None], axis=-1)[..., 0]
 

@@ -86,17 +86,15 @@ def surface_distance(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Distance from each point (model frame, any leading shape) to the reference's surface,
     and the index of the surface sample it was measured to, by ``lookup``: ``facing``, the
-    nearest sample the point lies in front of (``Surface.facing``: right across a thin
-    wall); ``nearest``, the nearest sample (``Surface.nearest``); ``field``, the distance
+    nearest sample the point lies in front of (``Surface.nearest``'s ``facing``: right across
+    a thin wall); ``nearest``, the nearest sample (``Surface.nearest``); ``field``, the distance
     field's own answer (a fifth of the time, for screening). A point on the surface lies up to
     about two spacings from the nearest sample of a random sample, so within
     ``PATCH_SPACINGS`` spacings only its distance to the tangent plane counts."""
-    if lookup == "facing":
-        nearest = surface.facing(model_points)
-    elif lookup == "nearest":
-        nearest = surface.nearest(model_points)
-    else:
+    if lookup == "field":
         nearest = surface.field.lookup(model_points)
+    else:
+        nearest = surface.nearest(model_points, facing=lookup == "facing")
     return patch_distance(surface, model_points, nearest), nearest
 
 
