@@ -212,6 +212,7 @@ def _face_out_of_range() -> bytes:
         (SAMPLES["b.pcd"].replace(b"POINTS 20", b"POINTS -1"), "a.pcd", "POINTS: "),
         (SAMPLES["a.pcd"].replace(b"FIELDS x y z", b"FIELDS x x z"), "a.pcd", "'y'"),
         (SAMPLES["b.pcd"].replace(b"FIELDS x y z", b"FIELDS x y x"), "a.pcd", "'z'"),
+        (b"v 0\nv 0.5\nv 1\nf 1 2 3\n", "a.obj", "x y z triples"),
     ],
 )
 def test_what_fuzzing_found(data, name, words):

@@ -46,6 +46,7 @@ def test_integers_and_arrays_are_numbers():
         ([*cloud(5), [1.0, float("-inf"), 3.0]], "NaN and infinity"),
         ([*cloud(5), [1e39, 0.0, 0.0]], "too large for a 32-bit float"),
         ([*cloud(5), [10**400, 0, 0]], "too large for a 32-bit float"),
+        ([*cloud(5), [4.47709384069477e37, 0.0, 0.0]], "beyond 1e+18"),  # a 500 once
         ([[1.0, 2.0, 3.0]] * 8, "(nearly) the same"),
         ([[1000.0, 2.0, 3.0]] * 7 + [[1000.0, 2.0, 3.0000001]], "(nearly) the same"),
     ],

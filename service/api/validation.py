@@ -17,6 +17,10 @@ from service.errors import InvalidPoints
 MIN_RELATIVE_RADIUS = 1e-6
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
+# A coordinate beyond this is refused: the engine squares float32 distances (a cloud's radius,
+# its spread), which overflow to infinity past about 1e19 (a registration of a cloud reaching
+# 4.5e37 failed with a 500). No sensor measures that far in any unit.
+MAX_COORDINATE = 1e18
 
 
 def validate_points(points: object, min_points: int, max_points: int) -> np.ndarray:
@@ -99,7 +103,7 @@ def _check_count(count: int, min_points: int, max_points: int) -> None:
 
 
 def _check_values(array: np.ndarray) -> np.ndarray:
-    """Finite, within float32, not all one point; returns a float32 copy or view."""
+    """Finite, within ``MAX_COORDINATE``, not all one point; returns a float32 copy or view."""
     if not np.isfinite(array).all():
         index = int(np.argmin(np.isfinite(array).all(axis=1)))
         raise InvalidPoints(
@@ -109,6 +113,11 @@ def _check_values(array: np.ndarray) -> np.ndarray:
     magnitude = float(np.abs(array).max())
     if magnitude > FLOAT32_MAX:
         raise InvalidPoints(f"a coordinate ({magnitude:g}) is too large for a 32-bit float")
+    if magnitude > MAX_COORDINATE:
+        raise InvalidPoints(
+            f"a coordinate ({magnitude:g}) is beyond {MAX_COORDINATE:g}, where the service's "
+            "32-bit arithmetic overflows: send the cloud in metres or millimetres"
+        )
     points = np.ascontiguousarray(array, dtype=np.float32)
     centred = points - points.mean(axis=0, dtype=np.float64)  # float64
     radius = float(np.sqrt(np.einsum("ij,ij->i", centred, centred).max()))

@@ -29,6 +29,9 @@ def load_mesh(source: str | Path, file_type: str | None = None) -> trimesh.Trime
         raise MeshError(f"cannot read the mesh: {error}") from error
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise MeshError("the file holds no triangles")
+    if loaded.vertices.ndim != 2 or loaded.vertices.shape[1] != 3:
+        # an OBJ's "v 0.5" lines read as vertices of one coordinate
+        raise MeshError("the mesh's vertices are not x y z triples")
     if loaded.faces.min() < 0 or loaded.faces.max() >= len(loaded.vertices):
         raise MeshError("a face refers to a vertex the file does not have")
     if not np.isfinite(loaded.vertices).all():
