@@ -32,7 +32,7 @@ from service.engine.hypotheses import Hypotheses
 from service.engine.icp import Surface, icp
 from service.engine.mapping import Mapper
 from service.engine.normalize import normalize, radius, subsample
-from service.engine.normals import estimate_normals, orient_by_views
+from service.engine.normals import estimate_normals, mesh_normals, orient_by_views
 from service.engine.principal_axes import Frame, flatness
 from service.engine.reference import Reference
 from service.engine.surroundings import set_aside_surroundings
@@ -296,11 +296,11 @@ class Engine:
                 )[0]
             )
             visible = render(points, reference.scale, settings.views, surface, mesh.area)
-            normals = mesh.face_normals[face_index]
+            normals = mesh_normals(mesh, face_index, points, directions(settings.views), visible)
         else:
             visible = render(points, reference.scale, settings.views, tree=tree)
             normals = estimate_normals(points, tree=tree)
-        normals = orient_by_views(points, normals, directions(settings.views), visible)
+            normals = orient_by_views(points, normals, directions(settings.views), visible)
         if mesh is None:  # a cloud's own buffer lets through what its camera hardly samples;
             # a view left facing nothing (a few points, normals at odds) keeps what it showed
             faced = visible & facing(points, normals, reference.scale, settings.views)

@@ -5,14 +5,20 @@ Point-to-plane refinement and the visibility checks need a normal at every refer
 - a cloud gets the normal of the plane fitted to its nearest neighbours (the eigenvector of
   their covariance with the smallest eigenvalue).
 Either is then oriented outward by the cameras that see the point: a surface faces the camera
-it is seen from, so each normal is flipped to agree with the directions of the views that see
-its point (``service.engine.views``); a point no view sees takes the orientation of its nearest
-seen neighbour.
+it is seen from. A cloud's normals are flipped one by one to agree with the directions of the
+views that see their point (``service.engine.views``); a point no view sees takes the
+orientation of its nearest seen neighbour. A mesh whose triangles are wound consistently
+already says which side is out: its normals are flipped a connected piece at a time, by the
+votes of all the piece's points together. One point's vote goes wrong where a view sees it
+across a thin wall or from inside a hollow, and flipped one by one, 10-17 % of the normals of
+the shipped random objects (watertight meshes) and 40 % of a hollow brick's came out pointing
+inward; a wall measured from its wrong side then rejects the points that lie on it.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import trimesh
 from scipy.spatial import cKDTree
 
 NEIGHBOURS = 16  # points in the plane fitted for an estimated normal
@@ -51,3 +57,38 @@ def orient_by_views(
         flip = np.einsum("ij,ij->i", oriented[unseen], neighbour) < 0
         oriented[np.flatnonzero(unseen)[flip]] *= -1
     return oriented
+
+
+def outward_faces(
+    mesh: trimesh.Trimesh, face_index: np.ndarray, directions: np.ndarray, visible: np.ndarray
+) -> np.ndarray | None:
+    """(F,) +1 or -1 per face of ``mesh``: whether its normal faces out, for a consistently wound
+    mesh (None otherwise). Each connected piece is flipped as a whole where the views disagree
+    with it: ``orient_by_views``' votes of the points sampled on faces ``face_index``, summed
+    over the piece."""
+    if not mesh.is_winding_consistent:
+        return None
+    pieces = trimesh.graph.connected_component_labels(
+        mesh.face_adjacency, node_count=len(mesh.faces)
+    )
+    normals = np.asarray(mesh.face_normals[face_index], dtype=np.float64)
+    votes = np.einsum("kn,kn->n", visible.astype(np.float64), directions @ normals.T)
+    total = np.bincount(pieces[face_index], weights=votes, minlength=pieces.max() + 1)
+    return np.where(total[pieces] < 0, -1.0, 1.0)
+
+
+def mesh_normals(
+    mesh: trimesh.Trimesh,
+    face_index: np.ndarray,
+    points: np.ndarray,
+    directions: np.ndarray,
+    visible: np.ndarray,
+) -> np.ndarray:
+    """Outward normals of ``points`` sampled on ``mesh``'s faces ``face_index``: the faces' own,
+    a connected piece at a time (``outward_faces``), or one by one (``orient_by_views``) where
+    the mesh is wound inconsistently. ``visible`` (K, N): which points each view sees."""
+    normals = np.asarray(mesh.face_normals[face_index], dtype=np.float64)
+    sides = outward_faces(mesh, face_index, directions, visible)
+    if sides is None:
+        return orient_by_views(points, normals, directions, visible)
+    return normals * sides[face_index, None]
