@@ -207,6 +207,18 @@ def test_noise_is_no_match(engine):
 
 
 @needs_model
+def test_points_at_one_place_once_strays_are_set_aside_are_no_match(engine):
+    # found by fuzzing the API: the strays gave the cloud its extent, the rest had none, and
+    # normalising it divided by zero (a 500 on the way)
+    for place in ([0.0, 0.0, 0.0], [5.0, 5.0, 5.0]):
+        cloud = np.vstack([np.tile(place, (200, 1)), [[1, 1, 1], [2, 2, 2], [-1, 3, 0]]])
+        with np.errstate(all="raise"):
+            answer = engine.align(cloud)
+        assert answer.verdict == "no_match" and answer.points_set_aside == 3
+        assert "lie at one place" in answer.reasons[0]
+
+
+@needs_model
 def test_the_part_eq4_likes_best_is_refined_before_another_part_wins():
     # found in the evaluation: a noisy full cloud of random-250 was answered as random-075,
     # accepted, whose pose was refined first and fit "excellently" (0.91); random-250's own

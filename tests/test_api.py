@@ -281,6 +281,17 @@ def test_bad_points_are_refused_and_change_nothing(api, problem):
     assert api.get("/references").json() == before
 
 
+def test_a_cloud_at_one_place_but_for_strays_is_no_match(api):
+    """Valid points (the strays give the cloud its extent), nothing to recognise once they are
+    set aside: an answer saying so, not a 500."""
+    points = [[0.5, 0.5, 0.5]] * 200 + [[1.5, 1.5, 1.5], [2.5, 2.5, 2.5], [-0.5, 3.5, 0.5]]
+    answer = api.post("/align", json={"points": points})
+    assert answer.status_code == 200, answer.text
+    body = answer.json()
+    assert body["verdict"] == "no_match" and body["points_set_aside"] == 3
+    assert any("lie at one place" in reason for reason in body["reasons"])
+
+
 def test_unknown_reference_fields_are_refused_and_change_nothing(api):
     before = api.get("/references").json()
     misspelt = api.post("/references", json={"nmae": "typo", "name": "typo", "points": GOOD})

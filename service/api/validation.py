@@ -10,11 +10,8 @@ from itertools import chain
 
 import numpy as np
 
+from service.engine.normalize import has_extent
 from service.errors import InvalidPoints
-
-# All points (nearly) the same: the cloud's radius is below this share of its coordinates'
-# magnitude (at least 1 unit), i.e. within a few float32 steps of one point.
-MIN_RELATIVE_RADIUS = 1e-6
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 # A coordinate beyond this is refused: the engine squares float32 distances (a cloud's radius,
@@ -121,7 +118,7 @@ def _check_values(array: np.ndarray) -> np.ndarray:
     points = np.ascontiguousarray(array, dtype=np.float32)
     centred = points - points.mean(axis=0, dtype=np.float64)  # float64
     radius = float(np.sqrt(np.einsum("ij,ij->i", centred, centred).max()))
-    if radius <= MIN_RELATIVE_RADIUS * max(1.0, magnitude):
+    if not has_extent(points, radius):
         raise InvalidPoints(
             f"all points are (nearly) the same (radius {radius:.3g}): the cloud has no "
             "scale to align"

@@ -31,7 +31,7 @@ from service.engine.grid import grid
 from service.engine.hypotheses import Hypotheses
 from service.engine.icp import Surface, icp
 from service.engine.mapping import Mapper
-from service.engine.normalize import normalize, radius, subsample
+from service.engine.normalize import has_extent, normalize, radius, subsample
 from service.engine.normals import estimate_normals, mesh_normals, orient_by_views
 from service.engine.principal_axes import Frame, flatness
 from service.engine.reference import Reference
@@ -530,6 +530,17 @@ class Engine:
     def _align_reading(self, query: Query, scene: np.ndarray, spacing: float) -> Alignment:
         """Steps 1-8 on one reading of the observation."""
         snapshot, settings, clock, rng = query.snapshot, self.settings, query.clock, query.rng
+        if not has_extent(scene):  # strays set aside, what is left lies at one place
+            return self._unanswered(
+                snapshot,
+                query.allowed,
+                scene,
+                np.zeros(len(snapshot.classifier.labels)),
+                [
+                    f"the {len(scene)} points left once stray points are set aside lie at one "
+                    "place: there is no shape to recognise; send the part's points"
+                ],
+            )
         # 1. Normalise: subsample to the network's size (centring, scaling in map()).
         observed = scene[subsample(scene, settings.network_points, rng)]
         size = radius(observed)
@@ -656,11 +667,19 @@ class Engine:
 
     def _no_match_by_size(self, snapshot, allowed, observed, scores) -> Alignment:
         """The answer when no reference could give an observation of this size: no match, the
-        reason naming the likely unit, and for diagnosis the nearest-sized reference placed at
-        the observation's centroid."""
+        reason naming the likely unit."""
         size = radius(observed)
         ratio = size / snapshot.scales[allowed]
-        nearest = int(np.argmin(np.abs(np.log(ratio))))
+        nearest = float(ratio[np.argmin(np.abs(np.log(ratio)))])
+        reasons = self._size_reasons(snapshot.scales[allowed], size, nearest)
+        return self._unanswered(snapshot, allowed, observed, scores, reasons)
+
+    def _unanswered(self, snapshot, allowed, observed, scores, reasons) -> Alignment:
+        """A no-match answer for these ``reasons``, and for diagnosis the nearest-sized
+        reference placed at the observation's centroid."""
+        size = radius(observed)
+        ratio = size / snapshot.scales[allowed]
+        nearest = int(np.argmin(np.abs(np.log(np.maximum(ratio, np.finfo(float).tiny)))))
         row = int(allowed[nearest])
         label = snapshot.classifier.labels[row]
         entry = snapshot.entries[label]
@@ -677,7 +696,7 @@ class Engine:
             candidates=[],
             verdict="no_match",
             confidence=0.0,
-            reasons=self._size_reasons(snapshot.scales[allowed], size, float(ratio[nearest])),
+            reasons=reasons,
             size_ratio=float(ratio[nearest]),
             points=len(observed),
         )

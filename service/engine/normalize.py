@@ -31,12 +31,27 @@ def radius(points: np.ndarray, centroid: np.ndarray | None = None) -> float:
     return float(np.sqrt(((points - centre) ** 2).sum(axis=1).max()))
 
 
+# All points (nearly) the same: a cloud whose radius is below this share of its coordinates'
+# magnitude (at least 1 unit) lies within a few float32 steps of one point
+MIN_RELATIVE_RADIUS = 1e-6
+
+
+def has_extent(points: np.ndarray, size: float | None = None) -> bool:
+    """Whether a cloud spans more than one point (``MIN_RELATIVE_RADIUS``): one that does not
+    has no scale to normalise by. ``size``: its radius, if known."""
+    points = np.asarray(points)
+    size = radius(points.astype(np.float64)) if size is None else size
+    return size > MIN_RELATIVE_RADIUS * max(1.0, float(np.abs(points).max()))
+
+
 def normalize(points: np.ndarray, canonical: bool = False) -> Normalized:
-    """Centre on the centroid, divide by the radius, and optionally rotate to principal axes."""
+    """Centre on the centroid, divide by the radius, and optionally rotate to principal axes.
+    Points all at one place (a registration's augmented view may keep only those of a cloud
+    that is mostly one point) are all the origin."""
     points = np.asarray(points, dtype=np.float64)
     centroid = points.mean(axis=0)
     centred = points - centroid
-    scale = radius(points, centroid)
+    scale = radius(points, centroid) or 1.0
     frame = principal_frame(centred) if canonical else np.eye(3)
     network_input = (centred @ frame) / scale
     return Normalized(network_input.astype(np.float32), centroid, scale, frame)

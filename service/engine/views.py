@@ -99,11 +99,14 @@ def splat_visible(
 def cloud_spacing(points: np.ndarray, tree: cKDTree | None = None) -> float:
     """A cloud's spacing for its own depth buffer: ``CLOUD_SPACINGS`` times the median
     distance from a point to its nearest neighbour (a few points: any positive length;
-    ``tree``: a ``cKDTree`` of ``points``, if one is at hand)."""
+    ``tree``: a ``cKDTree`` of ``points``, if one is at hand). At least a millionth of the
+    cloud's extent: where most points coincide the median is 0, and the buffer's pixels,
+    a spacing wide, would number past what its 64-bit keys hold."""
     if len(points) < 2:
         return 1.0
     distance, _ = (tree or cKDTree(points)).query(points, k=2)
-    return max(CLOUD_SPACINGS * float(np.median(distance[:, 1])), 1e-12)
+    extent = float(np.ptp(points, axis=0).max())
+    return max(CLOUD_SPACINGS * float(np.median(distance[:, 1])), 1e-6 * extent, 1e-12)
 
 
 def sample_spacing(points: np.ndarray, area: float) -> float:
