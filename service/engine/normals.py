@@ -11,7 +11,7 @@ orientation of its nearest seen neighbour. A mesh whose triangles are wound cons
 already says which side is out: its normals are flipped a connected piece at a time, by the
 votes of all the piece's points together. One point's vote goes wrong where a view sees it
 across a thin wall or from inside a hollow, and flipped one by one, 10-17 % of the normals of
-the shipped random objects (watertight meshes) and 40 % of a hollow brick's came out pointing
+the shipped random objects (watertight meshes) and 39 % of a hollow brick's came out pointing
 inward; a wall measured from its wrong side then rejects the points that lie on it.
 """
 

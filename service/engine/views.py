@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from service.engine.normalize import MIN_RELATIVE_RADIUS
 from service.engine.principal_axes import principal_axes
 
 CAMERA_DISTANCE = 6.0  # scales from the centroid to a view's camera
@@ -99,14 +100,14 @@ def splat_visible(
 def cloud_spacing(points: np.ndarray, tree: cKDTree | None = None) -> float:
     """A cloud's spacing for its own depth buffer: ``CLOUD_SPACINGS`` times the median
     distance from a point to its nearest neighbour (a few points: any positive length;
-    ``tree``: a ``cKDTree`` of ``points``, if one is at hand). At least a millionth of the
-    cloud's extent: where most points coincide the median is 0, and the buffer's pixels,
-    a spacing wide, would number past what its 64-bit keys hold."""
+    ``tree``: a ``cKDTree`` of ``points``, if one is at hand). At least ``MIN_RELATIVE_RADIUS``
+    of the cloud's extent: where most points coincide the median is 0, and the buffer's
+    pixels, a spacing wide, would number past what its 64-bit keys hold."""
     if len(points) < 2:
         return 1.0
     distance, _ = (tree or cKDTree(points)).query(points, k=2)
-    extent = float(np.ptp(points, axis=0).max())
-    return max(CLOUD_SPACINGS * float(np.median(distance[:, 1])), 1e-6 * extent, 1e-12)
+    least = MIN_RELATIVE_RADIUS * float(np.ptp(points, axis=0).max())
+    return max(CLOUD_SPACINGS * float(np.median(distance[:, 1])), least, 1e-12)
 
 
 def sample_spacing(points: np.ndarray, area: float) -> float:
