@@ -207,6 +207,24 @@ def test_noise_is_no_match(engine):
 
 
 @needs_model
+@needs_calibration
+def test_a_right_but_uncertain_answer_is_not_told_to_change_units(engine):
+    # the evaluation's second table view of kuka-link-0: some of the table is left in the
+    # cloud, the part fits 77 % of it; its reasons once said that at 100 times its size the
+    # cloud would be a registered part's (a part of the gallery in millimetres)
+    from evaluation.cases import make_cases
+    from training.objects import load_manifest, load_object_meshes
+
+    name = "kuka-link-0"
+    meshes = load_object_meshes([spec for spec in load_manifest() if spec.name == name])
+    case = make_cases("table", meshes, {name: engine.get(name).scale}, 2048, 0, 2)[1]
+    answer = engine.align(case.points, viewpoint=np.asarray(case.params["viewpoint"]))
+    assert answer.label == name and answer.verdict == "uncertain"
+    assert answer.fit < 0.8  # poor: what once brought the hint
+    assert not any("its size" in reason for reason in answer.reasons), answer.reasons
+
+
+@needs_model
 def test_points_at_one_place_once_strays_are_set_aside_are_no_match(engine):
     # found by fuzzing the API: the strays gave the cloud its extent, the rest had none, and
     # normalising it divided by zero (a 500 on the way)

@@ -521,7 +521,10 @@ class Engine:
         reasons += confidence.reasons(
             answer.label, values, answer.runner_up_label, answer.ambiguous
         )
-        if values["fit"] < POOR_FIT:  # the part does not explain the cloud: other units?
+        # the part does not explain the cloud, nor does the confidence (if any) say it may:
+        # other units? Only then: the right part seen on its table, some of the table left in
+        # the cloud, fits as poorly (67-77 %), and was told that another unit would fit
+        if values["fit"] < POOR_FIT and (answer.verdict == "no_match" or answer.confidence is None):
             size = answer.size_ratio * entry.reference.scale
             hint = self._unit_hint(query.snapshot.scales[query.allowed], size)
             reasons += [hint] if hint else []
