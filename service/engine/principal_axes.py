@@ -49,6 +49,12 @@ class Frame:
         return cls(centroid, axes, spreads)
 
     @cached_property
+    def half_turns(self) -> np.ndarray:
+        """(3, 3, 3) the half turns about each principal axis: what the signs of two axes of a
+        matched frame flip."""
+        return np.stack([2 * np.outer(axis, axis) - np.eye(3) for axis in self.axes.T])
+
+    @cached_property
     def matched(self) -> np.ndarray:
         """(K, 3, 3) the frames the principal-axes hypotheses carry onto an observation's:
         this frame, and where two spreads are alike (``ROUND_SPREADS``) this frame turned about
