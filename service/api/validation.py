@@ -118,7 +118,7 @@ def _check_values(array: np.ndarray) -> np.ndarray:
     points = np.ascontiguousarray(array, dtype=np.float32)
     centred = points - points.mean(axis=0, dtype=np.float64)  # float64
     radius = float(np.sqrt(np.einsum("ij,ij->i", centred, centred).max()))
-    if not has_extent(points, radius):
+    if not has_extent(radius, magnitude):
         raise InvalidPoints(
             f"all points are (nearly) the same (radius {radius:.3g}): the cloud has no "
             "scale to align"

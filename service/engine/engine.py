@@ -534,7 +534,8 @@ class Engine:
     def _align_reading(self, query: Query, scene: np.ndarray, spacing: float) -> Alignment:
         """Steps 1-8 on one reading of the observation."""
         snapshot, settings, clock, rng = query.snapshot, self.settings, query.clock, query.rng
-        if not has_extent(scene):  # strays set aside, what is left lies at one place
+        # the strays set aside, what is left lies at one place
+        if not has_extent(radius(scene), float(np.abs(scene).max())):
             return self._unanswered(
                 snapshot,
                 query.allowed,
@@ -677,19 +678,17 @@ class Engine:
     def _no_match_by_size(self, snapshot, allowed, observed, scores) -> Alignment:
         """The answer when no reference could give an observation of this size: no match, the
         reason naming the likely unit."""
-        size = radius(observed)
-        ratio = size / snapshot.scales[allowed]
-        nearest = float(ratio[np.argmin(np.abs(np.log(ratio)))])
-        reasons = self._size_reasons(snapshot.scales[allowed], size, nearest)
+        size, scales = radius(observed), snapshot.scales[allowed]
+        ratio = size / scales
+        reasons = self._size_reasons(scales, size, float(ratio[nearest_sized(ratio)]))
         return self._unanswered(snapshot, allowed, observed, scores, reasons)
 
     def _unanswered(self, snapshot, allowed, observed, scores, reasons) -> Alignment:
         """A no-match answer for these ``reasons``, and for diagnosis the nearest-sized
         reference placed at the observation's centroid."""
-        size = radius(observed)
-        ratio = size / snapshot.scales[allowed]
-        nearest = int(np.argmin(np.abs(np.log(np.maximum(ratio, np.finfo(float).tiny)))))
-        row = int(allowed[nearest])
+        ratio = radius(observed) / snapshot.scales[allowed]
+        index = nearest_sized(ratio)
+        row = int(allowed[index])
         label = snapshot.classifier.labels[row]
         entry = snapshot.entries[label]
         translation = observed.mean(axis=0) - entry.surface.points.mean(axis=0)
@@ -706,7 +705,7 @@ class Engine:
             verdict="no_match",
             confidence=0.0,
             reasons=reasons,
-            size_ratio=float(ratio[nearest]),
+            size_ratio=float(ratio[index]),
             points=len(observed),
         )
 
@@ -799,6 +798,12 @@ class Engine:
                 }
             )
         return checks
+
+
+def nearest_sized(ratio: np.ndarray) -> int:
+    """Which of these observed-size-over-scale ratios is nearest 1 (a ratio of 0, an
+    observation at one place, is the smallest scale's)."""
+    return int(np.argmin(np.abs(np.log(np.maximum(ratio, np.finfo(float).tiny)))))
 
 
 def excellent(fits: list[Fit], settings: EngineSettings) -> bool:

@@ -36,12 +36,10 @@ def radius(points: np.ndarray, centroid: np.ndarray | None = None) -> float:
 MIN_RELATIVE_RADIUS = 1e-6
 
 
-def has_extent(points: np.ndarray, size: float | None = None) -> bool:
-    """Whether a cloud spans more than one point (``MIN_RELATIVE_RADIUS``): one that does not
-    has no scale to normalise by. ``size``: its radius, if known."""
-    points = np.asarray(points)
-    size = radius(points.astype(np.float64)) if size is None else size
-    return size > MIN_RELATIVE_RADIUS * max(1.0, float(np.abs(points).max()))
+def has_extent(size: float, magnitude: float) -> bool:
+    """Whether a cloud of radius ``size`` whose coordinates reach ``magnitude`` spans more
+    than one point (``MIN_RELATIVE_RADIUS``): one that does not has no scale to normalise by."""
+    return size > MIN_RELATIVE_RADIUS * max(1.0, magnitude)
 
 
 def normalize(points: np.ndarray, canonical: bool = False) -> Normalized:

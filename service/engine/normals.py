@@ -46,9 +46,7 @@ def orient_by_views(
     says which points each view sees.
     """
     normals = np.asarray(normals, dtype=np.float64)
-    # per point: the sum over the views that see it of n . d (its sign is the orientation)
-    votes = np.einsum("kn,kn->n", visible.astype(np.float64), directions @ normals.T)
-    oriented = normals * np.where(votes < 0, -1.0, 1.0)[:, None]
+    oriented = normals * np.where(votes(normals, directions, visible) < 0, -1.0, 1.0)[:, None]
     unseen = ~visible.any(axis=0)
     if unseen.any() and (~unseen).any():
         seen_index = np.flatnonzero(~unseen)
@@ -59,21 +57,30 @@ def orient_by_views(
     return oriented
 
 
+def votes(normals: np.ndarray, directions: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """Per point, the sum over the views that see it of n . d: its sign is the orientation the
+    views vote for."""
+    return np.einsum("kn,kn->n", visible.astype(np.float64), directions @ normals.T)
+
+
 def outward_faces(
-    mesh: trimesh.Trimesh, face_index: np.ndarray, directions: np.ndarray, visible: np.ndarray
+    mesh: trimesh.Trimesh,
+    face_index: np.ndarray,
+    normals: np.ndarray,
+    directions: np.ndarray,
+    visible: np.ndarray,
 ) -> np.ndarray | None:
     """(F,) +1 or -1 per face of ``mesh``: whether its normal faces out, for a consistently wound
     mesh (None otherwise). Each connected piece is flipped as a whole where the views disagree
-    with it: ``orient_by_views``' votes of the points sampled on faces ``face_index``, summed
-    over the piece."""
+    with it: the ``votes`` of the points sampled on faces ``face_index`` (with those faces'
+    ``normals``), summed over the piece."""
     if not mesh.is_winding_consistent:
         return None
     pieces = trimesh.graph.connected_component_labels(
         mesh.face_adjacency, node_count=len(mesh.faces)
     )
-    normals = np.asarray(mesh.face_normals[face_index], dtype=np.float64)
-    votes = np.einsum("kn,kn->n", visible.astype(np.float64), directions @ normals.T)
-    total = np.bincount(pieces[face_index], weights=votes, minlength=pieces.max() + 1)
+    cast = votes(normals, directions, visible)
+    total = np.bincount(pieces[face_index], weights=cast, minlength=pieces.max() + 1)
     return np.where(total[pieces] < 0, -1.0, 1.0)
 
 
@@ -88,7 +95,7 @@ def mesh_normals(
     a connected piece at a time (``outward_faces``), or one by one (``orient_by_views``) where
     the mesh is wound inconsistently. ``visible`` (K, N): which points each view sees."""
     normals = np.asarray(mesh.face_normals[face_index], dtype=np.float64)
-    sides = outward_faces(mesh, face_index, directions, visible)
+    sides = outward_faces(mesh, face_index, normals, directions, visible)
     if sides is None:
         return orient_by_views(points, normals, directions, visible)
     return normals * sides[face_index, None]
