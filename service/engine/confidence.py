@@ -8,7 +8,7 @@ logistic regression over a few measures of the answer, each in units of the part
 - ``coverage``: the share of what the camera should see of the part that was observed;
 - ``margin``: how much better the part fits than the best other part (fit x coverage);
 - ``alike``: how close the best other pose of the same part comes (0 when none does; a pose
-  that places the part within ``engine.RIGHT_EITHER_WAY`` of the answer's, by which the
+  that places the part within ``search.RIGHT_EITHER_WAY`` of the answer's, by which the
   answer would still be precise, does not count);
 - ``points``: log10 of the number of observed points;
 - ``size``: log of the observed radius over the part's scale.

@@ -32,7 +32,8 @@ from service.api.schemas import (
 )
 from service.api.uploads import CAMERA_FIELDS, CLOUD_FILES, Form, form_points, read_form
 from service.api.validation import points_from_raw, validate_points
-from service.engine.engine import Alignment, Engine
+from service.engine.answer import Alignment
+from service.engine.engine import Engine
 from service.settings import Settings
 
 router = APIRouter(tags=["align"])
