@@ -17,7 +17,10 @@ and for a group past ``--within`` degrees what parts its two farthest answers:
 - ``near-turn``: answers at different near-symmetric turns of the part (a flange turned by a
   notch's step, a shaft about its axis), each within ADD-S 0.1 of the truth;
 - ``wrong``: an answer of another part, or at a pose ADD-S 0.1 or more from the truth;
-- ``refinement``: answers a few degrees apart (under 10) at the same turn.
+- ``refinement``: answers a few degrees apart (under 10) at the same turn;
+
+and whether those two answers both said that other poses fit alike (``ambiguous``): the
+answer's own warning that the view does not tell them apart.
 
 Needs the ``eval`` and ``train`` extras (pybullet's meshes).
 """
@@ -94,7 +97,12 @@ def main(argv: list[str] | None = None) -> dict:
                 )
                 right = error < SUCCESS_ADD_S
             answers.setdefault(case.params["group"], []).append(
-                {"rotation": found.rotation, "right": right, "match": found.verdict == "match"}
+                {
+                    "rotation": found.rotation,
+                    "right": right,
+                    "match": found.verdict == "match",
+                    "ambiguous": found.ambiguous,
+                }
             )
         for name, members in answers.items():
             part = name.split("/")[0]
@@ -112,6 +120,8 @@ def main(argv: list[str] | None = None) -> dict:
                     "spread_deg": spread,
                     "spread_match_deg": symmetric_spread(matched) if len(matched) > 1 else 0.0,
                     "cause": cause(*farthest, rotations) if spread > args.within else None,
+                    # the two farthest answers both said other poses fit alike
+                    "flagged": all(m["ambiguous"] for m in farthest),
                 }
             )
         print(f"seed {seed}: {len(answers)} groups answered", flush=True)
@@ -122,17 +132,19 @@ def main(argv: list[str] | None = None) -> dict:
     for g in missed:
         print(
             f"  seed {g['seed']} {g['group']:24s} {g['spread_deg']:6.1f} / "
-            f"{g['spread_match_deg']:6.1f}  {g['cause']}"
+            f"{g['spread_match_deg']:6.1f}  {g['cause']}{', ambiguous' if g['flagged'] else ''}"
         )
     summary = {
         "groups": len(groups),
         "within": len(groups) - len(missed),
         "within_match": len(groups) - len(missed_match),
         "causes": dict(Counter(g["cause"] for g in missed)),
+        "flagged": sum(g["flagged"] for g in missed),
     }
     print(
         f"\n{summary['within']} of {summary['groups']} groups within {args.within} degrees "
-        f"({summary['within_match']} among the matches); misses by cause: {summary['causes']}"
+        f"({summary['within_match']} among the matches); misses by cause: {summary['causes']}; "
+        f"{summary['flagged']} of the misses' two farthest answers both flagged ambiguous"
     )
     if args.json:
         args.json.write_text(json.dumps({"summary": summary, "groups": groups}, indent=2))

@@ -47,5 +47,6 @@ def test_one_draw_of_every_symmetric_part_is_answered_and_summed(tmp_path):
     assert summary["within"] == len(groups) - len(missed)
     assert all(g["cause"] is not None for g in missed)
     assert all(g["cause"] is None for g in groups if g not in missed)
+    assert 0 <= summary["flagged"] <= len(missed)
     # full clouds of the symmetric parts are answered as one pose (every draw measured so far)
     assert all(g["spread_deg"] <= symmetric.WITHIN_DEG for g in groups if "/full" in g["group"])
