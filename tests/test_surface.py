@@ -315,6 +315,30 @@ def test_the_canonical_pose_is_one_matrix_for_all_equivalent_poses():
     assert described.kind == "discrete" and len(described.rotations) == 4
 
 
+def test_two_poses_are_compared_up_to_the_symmetry_not_by_their_canonical_poses():
+    up = np.array([0.0, 1.0, 0.0])
+    quarters = np.stack([about(up, 90 * k) for k in range(4)])  # a square brick's turns
+    square = Symmetry("discrete", np.zeros(3), quarters)
+    # either side of 45 degrees the canonical pose switches quarter: 88 degrees as matrices
+    first, second = about(up, 44.0), about(up, 46.0)
+    assert (
+        angle_deg(square.canonical(first, np.zeros(3))[0], square.canonical(second, np.zeros(3))[0])
+        > 80
+    )
+    assert abs(square.distance_deg(first, second) - 2.0) < 1e-6
+    assert abs(square.distance_deg(first, second @ quarters[3]) - 2.0) < 1e-6
+    tilted = about([1.0, 0.0, 0.0], 3.0) @ first
+    assert abs(square.distance_deg(first, tilted) - 3.0) < 1e-6
+    # a revolution: any turn about the axis is the same pose, a tilt of it is not
+    axis = np.array([0.0, 0.0, 1.0])
+    can = Symmetry("revolution", np.zeros(3), np.eye(3)[None], axis)
+    pose = Rotation.random(random_state=5).as_matrix()
+    assert can.distance_deg(pose, pose @ about(axis, 130.0)) < 1e-4
+    assert abs(can.distance_deg(pose, pose @ about([1.0, 0.0, 0.0], 4.0)) - 4.0) < 1e-4
+    # no symmetry: the plain angle
+    assert abs(Symmetry.none(np.zeros(3)).distance_deg(first, second) - 2.0) < 1e-6
+
+
 def about(axis, degrees) -> np.ndarray:
     """The rotation by ``degrees`` about ``axis`` (a unit vector)."""
     return Rotation.from_rotvec(np.radians(degrees) * np.asarray(axis, float)).as_matrix()

@@ -192,10 +192,16 @@ class Symmetry:
         return best, translation + (rotation - best) @ self.centroid
 
     def distance_deg(self, first: np.ndarray, second: np.ndarray) -> float:
-        """The angle between two rotations once symmetry is accounted for, in degrees."""
-        a, _ = self.canonical(first, np.zeros(3))
-        b, _ = self.canonical(second, np.zeros(3))
-        return float(np.degrees(np.arccos(np.clip((np.trace(a.T @ b) - 1) / 2, -1, 1))))
+        """The angle between two rotations once symmetry is accounted for, in degrees: the
+        smallest between ``first`` and a rotation equivalent to ``second``. Not the angle
+        between their canonical poses: near a pose where two equivalents are about as near
+        the identity, two rotations a degree apart can have canonical poses a symmetry apart
+        (a square brick's 90 degrees)."""
+        relative = np.einsum("ji,jk,gkl->gil", first, second, self.rotations)  # first^T second g
+        if self.kind == "revolution":  # and any turn about the axis
+            relative = np.stack([r @ _best_turn(r, self.axis) for r in relative])
+        cosine = (np.trace(relative, axis1=1, axis2=2).max() - 1) / 2
+        return float(np.degrees(np.arccos(np.clip(cosine, -1, 1))))
 
 
 def _perpendicular(axis: np.ndarray) -> np.ndarray:
