@@ -38,7 +38,8 @@ import numpy as np
 from evaluation.cases import make_cases
 from evaluation.evaluate import FOREIGN, REFERENCE_POINTS, SYMMETRIC_PARTS
 from evaluation.evaluate_mapping import prepare_engine
-from evaluation.metrics import SUCCESS_ADD_S, add_s, diameter, geodesic_deg, symmetric_spread
+from evaluation.metrics import geodesic_deg, succeeds, symmetric_spread
+from service.engine.symmetry import Symmetry
 from service.settings import MODELS_DIR
 from training.objects import load_manifest, load_object_meshes
 
@@ -46,13 +47,12 @@ WITHIN_DEG = 2.0  # the issue's target: answers for the same surface within this
 NEAR_TURN_DEG = 10.0  # answers farther apart than this (up to the symmetry) are other turns
 
 
-def cause(first: dict, second: dict, group_rotations: np.ndarray) -> str:
-    """Why two answers of one group lie apart (module docstring)."""
+def cause(first: dict, second: dict, symmetry: Symmetry) -> str:
+    """Why two answers of one group of a part with this ``symmetry`` lie apart (module
+    docstring)."""
     if not (first["right"] and second["right"]):
         return "wrong"
-    equivalent = np.einsum("ij,gjk->gik", second["rotation"], group_rotations)
-    apart = min(geodesic_deg(first["rotation"], r) for r in equivalent)
-    if apart > NEAR_TURN_DEG:
+    if symmetry.distance_deg(first["rotation"], second["rotation"]) > NEAR_TURN_DEG:
         return "near-turn"
     if geodesic_deg(first["rotation"], second["rotation"]) > NEAR_TURN_DEG:
         return "representative"
@@ -84,18 +84,13 @@ def main(argv: list[str] | None = None) -> dict:
             found = engine.align(
                 case.points, viewpoint=None if seen_from is None else np.asarray(seen_from)
             )
-            right = found.label == case.object_name
-            if right:
-                points = engine.entry(case.object_name).reference.points.astype(np.float64)
-                error = add_s(
-                    points,
-                    found.rotation,
-                    found.translation,
-                    case.rotation,
-                    case.translation,
-                    diameter(points),
-                )
-                right = error < SUCCESS_ADD_S
+            right = found.label == case.object_name and succeeds(
+                engine.entry(case.object_name).reference.points,
+                found.rotation,
+                found.translation,
+                case.rotation,
+                case.translation,
+            )
             answers.setdefault(case.params["group"], []).append(
                 {
                     "rotation": found.rotation,
@@ -105,8 +100,7 @@ def main(argv: list[str] | None = None) -> dict:
                 }
             )
         for name, members in answers.items():
-            part = name.split("/")[0]
-            rotations = engine.entry(part).symmetry.rotations
+            symmetry = engine.entry(name.split("/")[0]).symmetry
             spread = symmetric_spread(m["rotation"] for m in members)
             matched = [m["rotation"] for m in members if m["match"]]
             farthest = max(
@@ -119,7 +113,7 @@ def main(argv: list[str] | None = None) -> dict:
                     "group": name,
                     "spread_deg": spread,
                     "spread_match_deg": symmetric_spread(matched) if len(matched) > 1 else 0.0,
-                    "cause": cause(*farthest, rotations) if spread > args.within else None,
+                    "cause": cause(*farthest, symmetry) if spread > args.within else None,
                     # the two farthest answers both said other poses fit alike
                     "flagged": all(m["ambiguous"] for m in farthest),
                 }

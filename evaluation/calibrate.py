@@ -31,7 +31,7 @@ from tqdm import tqdm
 from evaluation.cases import NO_MATCH, Case, make_cases
 from evaluation.evaluate import FOREIGN
 from evaluation.evaluate_mapping import prepare_engine
-from evaluation.metrics import SUCCESS_ADD_S, add_s, auroc, diameter, expected_calibration_error
+from evaluation.metrics import auroc, expected_calibration_error, succeeds
 from service.engine import confidence
 from service.engine.confidence import FEATURES, Calibration
 from service.engine.engine import Engine
@@ -69,18 +69,13 @@ def answer(engine: Engine, case: Case, viewpoint: bool, leave_out: bool) -> dict
         return None  # refused by size before any search
     right = False
     if not leave_out and case.params.get("expected") not in (NO_MATCH, None):
-        if found.label == case.object_name:
-            truth = engine.get(case.object_name)
-            points = np.asarray(truth.points, np.float64)
-            error = add_s(
-                points,
-                found.rotation,
-                found.translation,
-                case.rotation,
-                case.translation,
-                diameter(points),
-            )
-            right = error < SUCCESS_ADD_S
+        right = found.label == case.object_name and succeeds(
+            engine.get(case.object_name).points,
+            found.rotation,
+            found.translation,
+            case.rotation,
+            case.translation,
+        )
     values = confidence.measures(
         found.fit, found.coverage, found.runner_up, found.alike, found.points, found.size_ratio
     )

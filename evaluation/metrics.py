@@ -73,6 +73,28 @@ def add_s(
     return float(distances.mean() / object_diameter)
 
 
+def succeeds(
+    model_points: np.ndarray,
+    rotation_estimated: np.ndarray,
+    translation_estimated: np.ndarray,
+    rotation_true: np.ndarray,
+    translation_true: np.ndarray,
+) -> bool:
+    """Whether a pose of the right part is a success: ADD-S on ``model_points`` (a reference's
+    own points will do where the mesh's dense sample is not at hand) under ``SUCCESS_ADD_S``
+    of their diameter."""
+    points = np.asarray(model_points, np.float64)
+    error = add_s(
+        points,
+        rotation_estimated,
+        translation_estimated,
+        rotation_true,
+        translation_true,
+        diameter(points),
+    )
+    return error < SUCCESS_ADD_S
+
+
 def alignment_error_normalized(
     scene_points: np.ndarray,
     reference_points: np.ndarray,

@@ -11,10 +11,13 @@ from scipy.spatial.transform import Rotation
 pytest.importorskip("pybullet_data")
 
 from benchmarks import symmetric  # noqa: E402
+from service.engine.symmetry import Symmetry  # noqa: E402
 
-QUARTER_TURNS = Rotation.from_rotvec(
-    np.outer(np.arange(4) * np.pi / 2, [0.0, 0.0, 1.0])
-).as_matrix()  # a square brick's symmetry about z
+QUARTER_TURNS = Symmetry(
+    "discrete",
+    np.zeros(3),
+    Rotation.from_rotvec(np.outer(np.arange(4) * np.pi / 2, [0.0, 0.0, 1.0])).as_matrix(),
+)  # a square brick's symmetry about z
 
 
 def answer(degrees: float, axis=(0.0, 0.0, 1.0), right: bool = True) -> dict:

@@ -445,7 +445,7 @@ class Engine:
             # 4-6 again with the mapped pairs: what the learned mapping pairs, solved.
             fits += search.run({row: paired for row in shortlist}, query.refine, WHOLE_REFINED)
         if not fits:  # nothing of a plausible size: no search over the wrong sizes
-            return self._no_match_by_size(snapshot, allowed, observed, scores)
+            return self._unanswered(snapshot, allowed, observed, scores)
 
         # 6b. The best pose, where it fits short of excellent, turned half a turn about each of
         # the part's principal axes and refined: a view's frame is matched up to the signs of
@@ -532,19 +532,15 @@ class Engine:
         count = top_k or settings.view_candidates
         return [int(r) for r in np.argsort(-best_per_row)[:count] if np.isfinite(best_per_row[r])]
 
-    def _no_match_by_size(self, snapshot, allowed, observed, scores) -> Alignment:
-        """The answer when no reference could give an observation of this size: no match, the
-        reason naming the likely unit."""
+    def _unanswered(self, snapshot, allowed, observed, scores, reasons=None) -> Alignment:
+        """A no-match answer for these ``reasons`` (by default: no reference could give an
+        observation of this size, naming the likely unit), and for diagnosis the nearest-sized
+        reference placed at the observation's centroid."""
         size, scales = radius(observed), snapshot.scales[allowed]
         ratio = size / scales
-        reasons = self._size_reasons(scales, size, float(ratio[nearest_sized(ratio)]))
-        return self._unanswered(snapshot, allowed, observed, scores, reasons)
-
-    def _unanswered(self, snapshot, allowed, observed, scores, reasons) -> Alignment:
-        """A no-match answer for these ``reasons``, and for diagnosis the nearest-sized
-        reference placed at the observation's centroid."""
-        ratio = radius(observed) / snapshot.scales[allowed]
         index = nearest_sized(ratio)
+        if reasons is None:
+            reasons = self._size_reasons(scales, size, float(ratio[index]))
         row = int(allowed[index])
         label = snapshot.classifier.labels[row]
         entry = snapshot.entries[label]
