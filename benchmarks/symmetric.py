@@ -20,7 +20,10 @@ and for a group past ``--within`` degrees what parts its two farthest answers:
 - ``refinement``: answers a few degrees apart (under 10) at the same turn;
 
 and whether those two answers both said that other poses fit alike (``ambiguous``): the
-answer's own warning that the view does not tell them apart.
+answer's own warning that the view does not tell them apart. Beside the spread, how far the
+answers of the right part lie from the truth (up to the symmetry), full clouds and depth
+views apart: a rule that answered one pose for one surface by ignoring what the view shows
+would narrow the spread and widen these.
 
 Needs the ``eval`` and ``train`` extras (pybullet's meshes).
 """
@@ -59,6 +62,31 @@ def cause(first: dict, second: dict, symmetry: Symmetry) -> str:
     return "refinement"
 
 
+def truth_figures(groups: list[dict]) -> dict[str, list[float]]:
+    """Per kind of view (``full``, ``sensor``): the median and 95th percentile of the answers'
+    angles from the truth, in degrees, and the share within ``WITHIN_DEG``."""
+    figures = {}
+    for view in ("full", "sensor"):
+        angles = np.array(
+            [
+                a
+                for g in groups
+                if g["group"].endswith("/" + view)
+                for a in g["truth_deg"]
+                if a is not None
+            ]
+        )
+        if not len(angles):
+            figures[view] = [float("nan")] * 3
+            continue
+        figures[view] = [
+            round(float(np.median(angles)), 2),
+            round(float(np.percentile(angles, 95)), 2),
+            round(float(np.mean(angles <= WITHIN_DEG)), 3),
+        ]
+    return figures
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.symmetric", description=__doc__)
     parser.add_argument("--seeds", default="0,1,2", help="comma-separated")
@@ -91,12 +119,17 @@ def main(argv: list[str] | None = None) -> dict:
                 case.rotation,
                 case.translation,
             )
+            symmetry = engine.entry(case.object_name).symmetry
             answers.setdefault(case.params["group"], []).append(
                 {
                     "rotation": found.rotation,
                     "right": right,
                     "match": found.verdict == "match",
                     "ambiguous": found.ambiguous,
+                    # how far from the truth, up to the symmetry (None: another part's answer)
+                    "truth_deg": symmetry.distance_deg(found.rotation, case.rotation)
+                    if found.label == case.object_name
+                    else None,
                 }
             )
         for name, members in answers.items():
@@ -116,6 +149,7 @@ def main(argv: list[str] | None = None) -> dict:
                     "cause": cause(*farthest, symmetry) if spread > args.within else None,
                     # the two farthest answers both said other poses fit alike
                     "flagged": all(m["ambiguous"] for m in farthest),
+                    "truth_deg": [m["truth_deg"] for m in members],
                 }
             )
         print(f"seed {seed}: {len(answers)} groups answered", flush=True)
@@ -134,11 +168,20 @@ def main(argv: list[str] | None = None) -> dict:
         "within_match": len(groups) - len(missed_match),
         "causes": dict(Counter(g["cause"] for g in missed)),
         "flagged": sum(g["flagged"] for g in missed),
+        # a rule could answer one pose for one surface and pose it worse: how far the answers
+        # of the right part lie from the truth, up to the symmetry
+        "truth_deg": truth_figures(groups),
     }
     print(
         f"\n{summary['within']} of {summary['groups']} groups within {args.within} degrees "
         f"({summary['within_match']} among the matches); misses by cause: {summary['causes']}; "
         f"{summary['flagged']} of the misses' two farthest answers both flagged ambiguous"
+    )
+    truth = summary["truth_deg"]
+    print(
+        "answers of the right part from the truth (up to the symmetry), median / 95th "
+        f"percentile / share within 2 degrees: full clouds {truth['full']}, "
+        f"depth views {truth['sensor']}"
     )
     if args.json:
         args.json.write_text(json.dumps({"summary": summary, "groups": groups}, indent=2))

@@ -51,5 +51,11 @@ def test_one_draw_of_every_symmetric_part_is_answered_and_summed(tmp_path):
     assert all(g["cause"] is not None for g in missed)
     assert all(g["cause"] is None for g in groups if g not in missed)
     assert 0 <= summary["flagged"] <= len(missed)
+    # each answer of the right part measured against the truth, up to the symmetry
+    assert all(len(g["truth_deg"]) >= 2 for g in groups)
+    angles = [a for g in groups for a in g["truth_deg"] if a is not None]
+    assert angles and all(0.0 <= a <= 180.0 for a in angles)
+    full = summary["truth_deg"]["full"]
+    assert full[0] <= full[1] and 0.0 <= full[2] <= 1.0
     # full clouds of the symmetric parts are answered as one pose (every draw measured so far)
     assert all(g["spread_deg"] <= symmetric.WITHIN_DEG for g in groups if "/full" in g["group"])
