@@ -159,6 +159,45 @@ def test_point_to_plane_icp_converges_from_ten_degrees_on_a_plane_rich_part(brac
     assert iterations < 20  # it stopped by its convergence test
 
 
+def test_refinement_told_the_viewpoint_pairs_no_point_with_a_wall_facing_away():
+    """A hollow box with walls thinner than its sample spacing, seen from above: placed a
+    wall's thickness toward the camera, the observed top face lies on the inside of the top
+    wall, whose samples face away from the camera. Refinement that pairs each point with its
+    nearest sample stays there; told where the camera was, it pairs the points with the top
+    face the camera sees and brings the box down to the truth."""
+    outer = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
+    thickness = 0.003
+    inner = trimesh.creation.box(extents=(0.1 - 2 * thickness,) * 3)
+    inner.invert()  # its faces turned into the cavity
+    shell = trimesh.util.concatenate([outer, inner])
+    points, faces = sample_surface_faces(shell, 2048, 0)
+    points = points.astype(np.float64)
+    tree = cKDTree(points)
+    field = DistanceField.of(points, radius(points), tree=tree)
+    surface = Surface.of(points, shell.face_normals[faces], field, tree)
+    assert thickness < surface.spacing  # a sample's neighbours span both sides of a wall
+    rng = np.random.default_rng(0)
+    top = np.column_stack([rng.uniform(-0.045, 0.045, (600, 2)), np.full(600, 0.05)])
+    camera = np.array([0.0, 0.0, 1.0])
+    shifted = np.array([0.0, 0.0, thickness])  # the box a wall's thickness toward the camera
+    scale = radius(surface.points)
+
+    def refined(viewpoint):
+        return icp(top, surface, np.eye(3), shifted, 1e-3 * scale, 0.3 * scale, viewpoint=viewpoint)
+
+    _, blind, _ = refined(None)
+    assert blind[2] > 0.5 * thickness  # left on the inside of the wall
+    _, seen, _ = refined(camera)
+    assert abs(seen[2]) < 0.1 * thickness
+    # which samples the points may pair with, at the start: most points on the inside of the
+    # top wall have a nearest sample facing into the cavity; told the camera, few (those
+    # whose candidates, a sample's neighbours, all lie on the inside)
+    inside = top - shifted  # the observed points in the shifted box's frame
+    away = surface.normals[surface.nearest(inside)][:, 2] < -0.2
+    seen_away = surface.normals[surface.nearest(inside, camera=camera - shifted)][:, 2] < -0.2
+    assert away.mean() > 0.5 and seen_away.mean() < 0.1
+
+
 def test_a_cube_seen_along_an_axis_shows_one_face():
     cube = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
     points, faces = sample_surface_faces(cube, 3000, 0)

@@ -311,6 +311,7 @@ class Search:
             noise=0.25 * settings.tolerance * scale,
             gate=5 * settings.tolerance * scale,
             iterations=iterations,
+            viewpoint=self.viewpoint,
         )
         candidate.settled = done < iterations
         return rotation, translation
