@@ -15,8 +15,8 @@ Told where the camera was (``viewpoint``), the pairs of the last, precise iterat
 reference samples that face away from it: a depth camera sees no surface that turns its back
 to it, but across a thin wall (a hollow brick's) the nearest sample is as often the far
 side's, and on the two of them together refinement settled in minima of its own, the brick
-shifted toward the camera by a twentieth of its scale and turned 1-4 degrees, with half its
-observed points paired with samples facing away (a sixth at the true pose).
+shifted toward the camera by 0.02-0.06 of its scale and turned 1-4 degrees, with half its
+observed points paired with samples facing away (a sixth to a quarter at the true pose).
 """
 
 from __future__ import annotations
