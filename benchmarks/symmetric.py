@@ -112,14 +112,15 @@ def main(argv: list[str] | None = None) -> dict:
             found = engine.align(
                 case.points, viewpoint=None if seen_from is None else np.asarray(seen_from)
             )
-            right = found.label == case.object_name and succeeds(
-                engine.entry(case.object_name).reference.points,
+            entry = engine.entry(case.object_name)
+            labelled = found.label == case.object_name
+            right = labelled and succeeds(
+                entry.reference.points,
                 found.rotation,
                 found.translation,
                 case.rotation,
                 case.translation,
             )
-            symmetry = engine.entry(case.object_name).symmetry
             answers.setdefault(case.params["group"], []).append(
                 {
                     "rotation": found.rotation,
@@ -127,8 +128,8 @@ def main(argv: list[str] | None = None) -> dict:
                     "match": found.verdict == "match",
                     "ambiguous": found.ambiguous,
                     # how far from the truth, up to the symmetry (None: another part's answer)
-                    "truth_deg": symmetry.distance_deg(found.rotation, case.rotation)
-                    if found.label == case.object_name
+                    "truth_deg": entry.symmetry.distance_deg(found.rotation, case.rotation)
+                    if labelled
                     else None,
                 }
             )
@@ -180,7 +181,7 @@ def main(argv: list[str] | None = None) -> dict:
     truth = summary["truth_deg"]
     print(
         "answers of the right part from the truth (up to the symmetry), median / 95th "
-        f"percentile / share within 2 degrees: full clouds {truth['full']}, "
+        f"percentile / share within {WITHIN_DEG} degrees: full clouds {truth['full']}, "
         f"depth views {truth['sensor']}"
     )
     if args.json:

@@ -54,7 +54,7 @@ from service.engine.surroundings import set_aside_surroundings
 from service.engine.symmetry import find_symmetry
 from service.engine.units import POOR_FIT, UNIT_FACTORS, nearest_sized, size_reason, unit_ratio
 from service.engine.views import (
-    CAMERA_DISTANCE,
+    camera_at,
     directions,
     facing,
     render,
@@ -626,7 +626,7 @@ class Engine:
         centroid = sample.mean(axis=0)
         renders: list[tuple[str, np.ndarray, np.ndarray | None]] = [("full", sample, None)]
         for direction in Rotation.random(views, random_state=rng).apply([0.0, 0.0, 1.0]):
-            camera = centroid + direction * CAMERA_DISTANCE * reference.scale
+            camera = camera_at(centroid, direction, reference.scale)
             if surface is None:
                 seen = visible_points(sample, camera)
             else:

@@ -135,10 +135,16 @@ def render(
     return np.stack([splat_visible(points, surface, camera, spacing) for camera in placed])
 
 
+def camera_at(centroid: np.ndarray, direction: np.ndarray, scale: float) -> np.ndarray:
+    """Where a camera looking along ``-direction`` (unit, one or (K, 3)) at a part of this
+    ``scale`` sits: ``CAMERA_DISTANCE`` scales from its ``centroid``."""
+    return centroid + direction * CAMERA_DISTANCE * scale
+
+
 def cameras(points: np.ndarray, scale: float, count: int) -> np.ndarray:
     """(count, 3) where each view's camera sits: ``CAMERA_DISTANCE`` scales from the centroid
     of ``points`` (float64), along ``directions(count)``."""
-    return points.mean(axis=0) + directions(count) * CAMERA_DISTANCE * scale
+    return camera_at(points.mean(axis=0), directions(count), scale)
 
 
 def facing(
