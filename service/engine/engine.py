@@ -1,24 +1,26 @@
 """The engine: recognise a registered object in a cloud and estimate its pose.
 
-``Engine.align`` is the paper's chain, one step a block: normalise -> map to 2-D (ONNX) ->
-grid -> classify (eq. 4, and the rendered views whose grids look most alike) -> hypothesise
-poses -> verify (fit x coverage) -> refine (point-to-plane ICP) -> decide -> measure the fit.
-It runs in two passes: first the whole part (eq. 4's candidates, whole-reference hypotheses),
-which a full 360-degree cloud passes at once; then, unless that found an excellent fit, single
-views (the candidates and view hypotheses the rendered views propose), which is what a depth
-camera posts. The gallery is an immutable snapshot swapped whole on every change, so any
-number of threads may align while one registers or removes a reference.
+``Engine.align`` is the paper's chain, one call a step:
 
-Steps 4-6 for one query (hypothesise, verify, refine; the best pose's flips, near-symmetries
-and finishing) are ``search.Search``; a reference's derived state and the gallery's snapshot
-``entry``; the answer's types ``answer``; the reasons an observation's size gives ``units``.
+0. set aside the surroundings (the table under the part, stray points): one or two readings;
+1. normalise: the network's sample of a reading (centred and scaled in ``map``);
+2. map every point to 2-D with the network (ONNX);
+3. grid the mapped points and classify them (eq. 4, and the rendered views whose grids look
+   most like the observation's): the candidate parts, ranked;
+4. hypothesise poses of each candidate, 5. verify them (fit x coverage), 6. refine the best
+   (point-to-plane ICP), pass by pass (``search.Search``): the whole part, single views, the
+   mapped pairs, until one fits excellently; then the best pose's flips and near-symmetries;
+7. decide: the best fit over every candidate and hypothesis, its canonical pose, the poses
+   that fit alike, the alignment error; then the calibrated confidence and the verdict.
+
+The gallery is an immutable snapshot swapped whole on every change, so any number of threads
+may align while one registers or removes a reference. The engine's terms: docs/decisions.md,
+"Glossary".
 """
 
 from __future__ import annotations
 
 import threading
-import time
-from dataclasses import dataclass
 
 import numpy as np
 import trimesh
@@ -32,27 +34,30 @@ from service.engine.classifier import LinearClassifier, view_features, view_gram
 from service.engine.confidence import Calibration
 from service.engine.distance_field import DistanceField
 from service.engine.entry import Entry, Snapshot, stored_surface
+from service.engine.fits import Fit
 from service.engine.grid import grid
 from service.engine.icp import Surface
 from service.engine.mapping import Mapper
 from service.engine.normalize import has_extent, normalize, radius, subsample
 from service.engine.normals import estimate_normals, mesh_normals, orient_by_views
 from service.engine.principal_axes import flatness
+from service.engine.query import Observed, Query, Ranking, Stopwatch
 from service.engine.reference import Reference
-from service.engine.search import (
+from service.engine.search import Plan, Search, excellent, sure_first
+from service.engine.surroundings import Reading, set_aside_surroundings
+from service.engine.symmetry import find_symmetry
+from service.engine.tuning import (
     ALIKE,
     DIFFERENT_DEG,
+    FLAT,
     MAX_ALTERNATIVES,
+    POOR_FIT,
     RIGHT_EITHER_WAY,
+    VIEW_POINTS,
     WHOLE_REFINED,
     WHOLE_SCREENED,
-    Search,
-    excellent,
-    sure_first,
 )
-from service.engine.surroundings import set_aside_surroundings
-from service.engine.symmetry import find_symmetry
-from service.engine.units import POOR_FIT, UNIT_FACTORS, nearest_sized, size_reason, unit_ratio
+from service.engine.units import UNIT_FACTORS, nearest_sized, size_reason, unit_ratio
 from service.engine.views import (
     camera_at,
     directions,
@@ -64,41 +69,6 @@ from service.engine.views import (
 from service.engine.visibility import random_camera, visible_points
 from service.errors import EmptyGallery, UnknownReference
 from service.settings import EngineSettings
-
-
-@dataclass
-class Query:
-    """What one ``align`` call asked, and its clock."""
-
-    snapshot: Snapshot
-    allowed: np.ndarray  # the classifier rows the caller allows
-    sources: tuple[str, ...]
-    top_k: int | None
-    refine: bool
-    viewpoint: np.ndarray | None
-    rng: np.random.Generator
-    clock: Stopwatch
-
-
-VIEW_POINTS = 512  # a rendered view's grid is made of at most this many of its points
-FLAT = 0.03  # an observation this flat (smallest over largest principal spread) is one face
-
-
-class Stopwatch:
-    """Milliseconds per step, in the order the steps ran."""
-
-    def __init__(self):
-        self.timings: dict[str, float] = {}
-        self.began = self.last = time.perf_counter()
-
-    def lap(self, step: str) -> None:
-        now = time.perf_counter()
-        self.timings[step] = self.timings.get(step, 0.0) + (now - self.last) * 1e3
-        self.last = now
-
-    def total(self) -> dict[str, float]:
-        self.timings["total"] = (time.perf_counter() - self.began) * 1e3
-        return {k: round(v, 3) for k, v in self.timings.items()}
 
 
 class Engine:
@@ -297,10 +267,28 @@ class Engine:
     ) -> Alignment:
         """Recognise and pose the object in ``points``; ``viewpoint`` is where the sensor was,
         in the cloud's frame, if known; below ``min_confidence`` the verdict is never "match"."""
+        query = self.query(candidates, top_k, refine, hypotheses, viewpoint)
+        scene = np.asarray(points, dtype=np.float64)
+        readings = self.set_aside(query, scene)  # 0
+        answer, seen = None, scene
+        for reading in readings:
+            if answer is not None and answer.fit * answer.coverage >= self.settings.excellent:
+                break
+            found = self.align_reading(query, reading)  # 1-7
+            found.points_set_aside = reading.set_aside
+            if answer is None or found.fit * found.coverage > answer.fit * answer.coverage:
+                answer, seen = found, reading.points
+        if answer.verdict != "no_match":  # 7. How far to trust it.
+            self.judge(answer, min_confidence, query, flatness(seen))
+        answer.timings_ms = query.clock.total()
+        return answer
+
+    def query(self, candidates, top_k, refine, hypotheses, viewpoint) -> Query:
+        """What an ``align`` call asks, on the gallery's snapshot of now."""
         snapshot, settings = self._snapshot, self.settings
         if not snapshot.entries:
             raise EmptyGallery("no reference is registered: register one with POST /references")
-        query = Query(
+        return Query(
             snapshot,
             self._candidate_rows(snapshot, candidates),
             hypotheses or settings.hypotheses,
@@ -310,34 +298,166 @@ class Engine:
             np.random.default_rng(settings.seed),
             Stopwatch(),
         )
-        scene = np.asarray(points, dtype=np.float64)
-        # 0. Set aside the table, stray points and clutter; more than one reading may be tried.
-        readings = set_aside_surroundings(
-            scene, np.random.default_rng(settings.seed), query.viewpoint
-        )
-        query.clock.lap("surroundings")
-        answer, seen = None, scene
-        for reading in readings:
-            if answer is not None and answer.fit * answer.coverage >= settings.excellent:
-                break
-            found = self._align_reading(query, reading.points, reading.spacing)
-            found.points_set_aside = reading.set_aside
-            if answer is None or found.fit * found.coverage > answer.fit * answer.coverage:
-                answer, seen = found, reading.points
-        if answer.verdict != "no_match":  # 9. How far to trust it.
-            self._judge(answer, min_confidence, query, flatness(seen))
-        answer.timings_ms = query.clock.total()
-        return answer
 
-    def _judge(
+    def set_aside(self, query: Query, scene: np.ndarray) -> list[Reading]:
+        """Step 0: the readings of the observation, the table, stray points and clutter set
+        aside (``surroundings``); more than one may be tried, the first first."""
+        rng = np.random.default_rng(self.settings.seed)
+        readings = set_aside_surroundings(scene, rng, query.viewpoint)
+        query.clock.lap("surroundings")
+        return readings
+
+    def align_reading(self, query: Query, reading: Reading) -> Alignment:
+        """Steps 1-7 on one reading of the observation."""
+        if not has_extent(radius(reading.points), float(np.abs(reading.points).max())):
+            return self._at_one_place(query, reading.points)
+        observed = self.normalise(query, reading)  # 1
+        observed.mapped = self.map(observed.points)  # 2
+        query.clock.lap("map")
+        observed.grid = grid(observed.mapped)  # 3
+        ranking = self.classify(query, observed)
+        search = Search(self.settings, query, observed)
+        fits = self.search(query, observed, ranking, search)  # 4-6
+        if not fits:  # nothing of a plausible size: no search over the wrong sizes
+            return self._unanswered(query.snapshot, query.allowed, observed.points, ranking.scores)
+        fits.sort(key=lambda f: -f.score)
+        if query.refine:
+            fits = search.finish(fits)  # 6, the best pose
+        return self.decide(query, observed, ranking, search, fits)  # 7
+
+    def normalise(self, query: Query, reading: Reading) -> Observed:
+        """Step 1: the network's sample of the reading (centring and scaling: ``map``)."""
+        scene = reading.points
+        sample = scene[subsample(scene, self.settings.network_points, query.rng)]
+        query.clock.lap("normalize")
+        return Observed(scene, sample, radius(sample), reading.spacing)
+
+    def classify(self, query: Query, observed: Observed) -> Ranking:
+        """Step 3: eq. (4)'s scores of the grid, and the candidates of a plausible size ranked
+        by them; the first ``top_k`` are verified in every pass."""
+        snapshot, settings = query.snapshot, self.settings
+        scores = snapshot.classifier.scores(observed.grid)
+        allowed = query.allowed
+        sized = self._plausible(snapshot.scales[allowed], observed.size, settings.size_ratio)
+        plausible = allowed[sized]
+        ranked = plausible[np.argsort(-scores[plausible], kind="stable")]
+        shortlist = ranked[: query.top_k or settings.top_k]
+        query.clock.lap("classify")
+        return Ranking(scores, ranked, shortlist, sure_first(scores, ranked))
+
+    def search(
+        self, query: Query, observed: Observed, ranking: Ranking, search: Search
+    ) -> list[Fit]:
+        """Steps 4-6, pass by pass until a fit is excellent: the whole part (principal axes),
+        single views (rendered views), the pairs the learned mapping makes."""
+        fits: list[Fit] = []
+        for plan_of in (self._whole_part, self._single_views, self._mapped_pairs):
+            if excellent(fits, self.settings):
+                break
+            plan = plan_of(query, observed, ranking)
+            if plan is None:
+                continue
+            made = search.hypothesise(plan)  # 4
+            found = search.verify(made, plan)  # 5
+            fits += search.refine(found, plan)  # 6
+        return fits
+
+    def _whole_part(self, query: Query, observed: Observed, ranking: Ranking) -> Plan | None:
+        """The shortlist's whole-part hypotheses (principal axes): what a full cloud needs."""
+        if "principal-axes" not in query.sources:
+            return None
+        planned = {int(row): ["principal-axes"] for row in ranking.shortlist}
+        return Plan(planned, WHOLE_REFINED, ranking.first, screened=WHOLE_SCREENED)
+
+    def _single_views(self, query: Query, observed: Observed, ranking: Ranking) -> Plan | None:
+        """The parts whose rendered views' grids look most like the observation's, and the
+        shortlist, from every rendered view of each: what one camera's view needs. Parts
+        only the views propose get their whole-part hypotheses too; more parts are rescued
+        where none fits well."""
+        if "views" not in query.sources:
+            return None
+        shortlist = ranking.shortlist
+        rows = self._nearest_views(
+            query.snapshot, observed.grid, observed.size, query.allowed, query.top_k
+        )
+        rows += [row for row in shortlist if row not in rows]
+        query.clock.lap("classify")
+        whole = ["principal-axes"] if "principal-axes" in query.sources else []
+        planned = {row: ["views", *(whole if row not in shortlist else [])] for row in rows}
+        return Plan(planned, self.settings.refine_best, ranking.first, rescue=True)
+
+    def _mapped_pairs(self, query: Query, observed: Observed, ranking: Ranking) -> Plan | None:
+        """The shortlist posed from the pairs of points the learned mapping makes (RANSAC, or
+        the paper's least squares alone)."""
+        paired = [s for s in query.sources if s in ("mapped", "paper")]
+        if not paired:
+            return None
+        return Plan({row: paired for row in ranking.shortlist}, WHOLE_REFINED)
+
+    def decide(
+        self, query: Query, observed: Observed, ranking: Ranking, search: Search, fits: list[Fit]
+    ) -> Alignment:
+        """Step 7: the best fit x coverage over every candidate and hypothesis, its canonical
+        pose among those its symmetry makes equivalent, the poses that fit alike, and the
+        alignment error on every point of the reading."""
+        snapshot = query.snapshot
+        winner = fits[0]
+        label = snapshot.classifier.labels[winner.row]
+        entry = snapshot.entries[label]
+        rotation, translation = entry.symmetry.canonical(winner.rotation, winner.translation)
+        runner_up = max(
+            (f for f in fits if f.row != winner.row), key=lambda f: f.score, default=None
+        )
+        runner_label = None if runner_up is None else snapshot.classifier.labels[runner_up.row]
+        alike, alternatives = self._alike(entry, fits)
+        query.clock.lap("decide")
+        error = alignment_error(observed.scene, entry.point_tree, rotation, translation)
+        query.clock.lap("measure")
+        return Alignment(
+            label=label,
+            score=float(ranking.scores[winner.row]),
+            rotation=rotation,
+            translation=translation,
+            alignment_error=error,
+            alignment_error_normalized=error / entry.reference.scale,
+            hypothesis=winner.source,
+            candidates=search.candidate_fits(fits, ranking.scores),
+            ambiguous=bool(alternatives),
+            alternatives=alternatives,
+            fit=winner.fit,
+            coverage=winner.coverage,
+            runner_up=0.0 if runner_up is None else runner_up.score,
+            runner_up_label=runner_label,
+            alike=alike,
+            size_ratio=observed.size / entry.reference.scale,
+            points=len(observed.scene),
+        )
+
+    @staticmethod
+    def _alike(entry: Entry, fits: list[Fit]) -> tuple[float, list[AlternativePose]]:
+        """How well the best other refined pose of the winner's part fits (0 when none lies
+        ``RIGHT_EITHER_WAY`` or farther from it), and those that fit alike as alternatives:
+        poses more than ``DIFFERENT_DEG`` apart, symmetry accounted for."""
+        winner, alike, alternatives = fits[0], 0.0, []
+        for other in fits[1:]:
+            if other.row != winner.row or not other.refined:
+                continue
+            if entry.symmetry.distance_deg(other.rotation, winner.rotation) <= DIFFERENT_DEG:
+                continue
+            if other.score > alike and entry.gap(winner, other) >= RIGHT_EITHER_WAY:
+                alike = other.score
+            if other.score >= ALIKE * winner.score and len(alternatives) < MAX_ALTERNATIVES:
+                pose = entry.symmetry.canonical(other.rotation, other.translation)
+                alternatives.append(AlternativePose(*pose, confidence=0.0))
+        return alike, alternatives
+
+    def judge(
         self, answer: Alignment, min_confidence: float | None, query: Query, flat: float
     ) -> None:
-        """Confidence, verdict and reasons of an answer (``service.engine.confidence``).
-        ``flat`` is the observation's ``flatness``: one flat face of a part that is not flat
-        itself fixes neither its turn about the face's normal nor where along the face it
-        lies (a crop or an occlusion draws the outline), so such an answer is never a
-        "match"."""
-        settings = self.settings
+        """Step 7's confidence, verdict and reasons (``service.engine.confidence``). ``flat``
+        is the observation's ``flatness``: one flat face of a part that is not flat itself
+        fixes neither its turn about the face's normal nor where along the face it lies, so
+        such an answer is never a "match"."""
         entry = query.snapshot.entries[answer.label]
         one_face = flat < FLAT <= entry.flatness
         values = confidence.measures(
@@ -355,21 +475,29 @@ class Engine:
             answer.confidence = self.calibration.confidence(values)
             for alternative in answer.alternatives:
                 alternative.confidence = answer.confidence
-            threshold = next(
-                t
-                for t in (min_confidence, settings.accept, self.calibration.accept)
-                if t is not None
-            )
+            threshold = self._threshold(min_confidence)
             if answer.confidence >= threshold and not one_face:
                 answer.verdict, answer.reasons = "match", []
                 return
-            low = answer.confidence < settings.reject_below
+            low = answer.confidence < self.settings.reject_below
             answer.verdict = "no_match" if low else "uncertain"
             reasons = []
             if answer.confidence < threshold:
                 reasons.append(
                     f"the confidence {answer.confidence:.2f} is below the threshold {threshold:.2f}"
                 )
+        answer.reasons = reasons + self._doubts(answer, values, one_face, flat, query)
+
+    def _threshold(self, min_confidence: float | None) -> float:
+        """The confidence of a "match": the request's, else the setting's, else the
+        calibration's own."""
+        chosen = (min_confidence, self.settings.accept, self.calibration.accept)
+        return next(t for t in chosen if t is not None)
+
+    def _doubts(self, answer: Alignment, values, one_face: bool, flat: float, query) -> list[str]:
+        """What makes an answer doubtful, each with what the caller can change."""
+        entry = query.snapshot.entries[answer.label]
+        reasons = []
         if one_face:
             reasons.append(
                 f"the observed points lie on one plane (thickness {flat:.1%} of their extent): "
@@ -379,136 +507,26 @@ class Engine:
         reasons += confidence.reasons(
             answer.label, values, answer.runner_up_label, answer.ambiguous
         )
-        # the part does not explain the cloud, nor does the confidence (if any) say it may:
-        # other units? Only then: the right part seen on its table, some of the table left in
-        # the cloud, fits as poorly (67-77 %), and was told that another unit would fit
+        # other units? Only where nothing says the part may fit: the right part on its table,
+        # some of the table left in, fits as poorly (docs/decisions.md#decide)
         if values["fit"] < POOR_FIT and (answer.verdict == "no_match" or answer.confidence is None):
             size = answer.size_ratio * entry.reference.scale
             hint = self._unit_hint(query.snapshot.scales[query.allowed], size)
             reasons += [hint] if hint else []
-        answer.reasons = reasons
+        return reasons
 
-    def _align_reading(self, query: Query, scene: np.ndarray, spacing: float) -> Alignment:
-        """Steps 1-8 on one reading of the observation."""
-        snapshot, settings, clock, rng = query.snapshot, self.settings, query.clock, query.rng
-        # the strays set aside, what is left lies at one place
-        if not has_extent(radius(scene), float(np.abs(scene).max())):
-            return self._unanswered(
-                snapshot,
-                query.allowed,
-                scene,
-                np.zeros(len(snapshot.classifier.labels)),
-                [
-                    f"the {len(scene)} points left once stray points are set aside lie at one "
-                    "place: there is no shape to recognise; send the part's points"
-                ],
-            )
-        # 1. Normalise: subsample to the network's size (centring, scaling in map()).
-        observed = scene[subsample(scene, settings.network_points, rng)]
-        size = radius(observed)
-        clock.lap("normalize")
-        # 2. Map every point to 2-D with the network.
-        observed_mapped = self.map(observed)
-        clock.lap("map")
-        # 3. Grid and classify (eq. 4) among the references of a plausible size.
-        observed_grid = grid(observed_mapped)
-        scores = snapshot.classifier.scores(observed_grid)
-        allowed = query.allowed
-        plausible = allowed[self._plausible(snapshot.scales[allowed], size, settings.size_ratio)]
-        ranked = plausible[np.argsort(-scores[plausible], kind="stable")]
-        shortlist = ranked[: query.top_k or settings.top_k]
-        clock.lap("classify")
-
-        # 4-6. The whole part: hypotheses from its principal axes, verified, the best refined
-        # (and in each pass the best of eq. (4)'s first choice).
-        search = Search(self, snapshot, observed, observed_mapped, spacing, query, clock)
-        chosen = query.sources
-        whole = [s for s in chosen if s == "principal-axes"]
-        first = sure_first(scores, ranked)
-        fits = search.run(
-            {row: whole for row in shortlist},
-            query.refine,
-            WHOLE_REFINED,
-            first,
-            screened=WHOLE_SCREENED,
-        )
-        if "views" in chosen and not excellent(fits, settings):
-            # 3b-6. Single views: the parts whose rendered views' grids look most like the
-            # observation's, and eq. (4)'s; hypotheses from every rendered view of each.
-            rows = [*self._nearest_views(snapshot, observed_grid, size, allowed, query.top_k)]
-            rows += [row for row in shortlist if row not in rows]
-            clock.lap("classify")
-            planned = {row: ["views", *(whole if row not in shortlist else [])] for row in rows}
-            fits += search.run(planned, query.refine, settings.refine_best, first, rescue=True)
-        paired = [s for s in chosen if s in ("mapped", "paper")]
-        if paired and not excellent(fits, settings):
-            # 4-6 again with the mapped pairs: what the learned mapping pairs, solved.
-            fits += search.run({row: paired for row in shortlist}, query.refine, WHOLE_REFINED)
-        if not fits:  # nothing of a plausible size: no search over the wrong sizes
-            return self._unanswered(snapshot, allowed, observed, scores)
-
-        # 6b. The best pose, where it fits short of excellent, turned half a turn about each of
-        # the part's principal axes and refined: a view's frame is matched up to the signs of
-        # its axes, and the wrong sign refines into a minimum of its own. Then the best part
-        # turned by each of its near-symmetries, refined: a notch or a cross hole may be all
-        # that tells those poses apart.
-        fits.sort(key=lambda f: -f.score)
-        if query.refine:
-            fits = search.flip(fits)
-            clock.lap("flips")
-            fits = search.resolve_near(fits)
-            clock.lap("near-symmetries")
-            # 6c. The winner's pose finished, where the search's budget stopped short of it.
-            if search.polish(fits[0]):
-                clock.lap("refine")
-
-        # 7. Decide: the best fit x coverage over every candidate and hypothesis; its
-        # canonical pose among those its symmetry makes equivalent; other poses that fit alike.
-        winner = fits[0]
-        label = snapshot.classifier.labels[winner.row]
-        entry = snapshot.entries[label]
-        rotation, translation = entry.symmetry.canonical(winner.rotation, winner.translation)
-        others = [f for f in fits if f.row != winner.row]
-        runner_up = max(others, key=lambda f: f.score, default=None)
-        runner_up_label = None if runner_up is None else snapshot.classifier.labels[runner_up.row]
-        alike = 0.0
-        alternatives = []
-        for other in fits[1:]:
-            if other.row != winner.row or not other.refined:
-                continue
-            if entry.symmetry.distance_deg(other.rotation, winner.rotation) <= DIFFERENT_DEG:
-                continue
-            if other.score > alike and entry.gap(winner, other) >= RIGHT_EITHER_WAY:
-                alike = other.score
-            if other.score >= ALIKE * winner.score and len(alternatives) < MAX_ALTERNATIVES:
-                alternatives.append(
-                    AlternativePose(
-                        *entry.symmetry.canonical(other.rotation, other.translation), confidence=0.0
-                    )
-                )
-        clock.lap("decide")
-
-        # 8. Measure the fit of the winner on every observed point.
-        error = alignment_error(scene, entry.point_tree, rotation, translation)
-        clock.lap("measure")
-        return Alignment(
-            label=label,
-            score=float(scores[winner.row]),
-            rotation=rotation,
-            translation=translation,
-            alignment_error=error,
-            alignment_error_normalized=error / entry.reference.scale,
-            hypothesis=winner.source,
-            candidates=search.candidate_fits(fits, scores),
-            ambiguous=bool(alternatives),
-            alternatives=alternatives,
-            fit=winner.fit,
-            coverage=winner.coverage,
-            runner_up=0.0 if runner_up is None else runner_up.score,
-            runner_up_label=runner_up_label,
-            alike=alike,
-            size_ratio=size / entry.reference.scale,
-            points=len(scene),
+    def _at_one_place(self, query: Query, scene: np.ndarray) -> Alignment:
+        """A no-match answer for a reading whose points, strays set aside, lie at one place."""
+        snapshot = query.snapshot
+        return self._unanswered(
+            snapshot,
+            query.allowed,
+            scene,
+            np.zeros(len(snapshot.classifier.labels)),
+            [
+                f"the {len(scene)} points left once stray points are set aside lie at one "
+                "place: there is no shape to recognise; send the part's points"
+            ],
         )
 
     def _nearest_views(

@@ -29,9 +29,8 @@ from typing import Literal
 import numpy as np
 
 from service.engine.icp import Surface
+from service.engine.tuning import OCCUPANCY_SPACINGS, PATCH_SPACINGS
 
-SPACINGS = 1.5  # the occupancy's voxel is at least this many observed-point spacings
-PATCH_SPACINGS = 2.5  # a sample's tangent patch reaches this many sample spacings
 Lookup = Literal["facing", "nearest", "field"]  # which sample ``surface_distance`` measures to
 
 
@@ -43,8 +42,8 @@ class Occupancy:
     @classmethod
     def around(cls, observed: np.ndarray, tolerance: float, spacing: float) -> Occupancy:
         """At ``tolerance``, or coarser where the observation is sparser: a voxel of at least
-        ``SPACINGS`` times the median distance between neighbouring observed points."""
-        return cls(observed, max(tolerance, SPACINGS * spacing))
+        ``OCCUPANCY_SPACINGS`` times the median distance between neighbouring observed points."""
+        return cls(observed, max(tolerance, OCCUPANCY_SPACINGS * spacing))
 
     def __init__(self, points: np.ndarray, voxel: float):
         self.voxel = float(voxel)
