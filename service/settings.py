@@ -42,9 +42,7 @@ class EngineSettings(BaseModel):
     hypotheses: tuple[str, ...] = ("views", "principal-axes", "mapped")
     views: int = Field(100, ge=4)  # single-camera views rendered per reference
     view_candidates: int = Field(6, ge=1)  # parts the nearest rendered views propose
-    # a candidate's hypotheses kept by the quick first look; 12 and 64 verify points and 12 ICP
-    # iterations against 32, 96 and 20: sensor views 62 -> 48 ms (median, quiet 2 cores), every
-    # family's success within one case (docs/operations.md, "Speed against accuracy")
+    # a candidate's hypotheses kept by the quick first look (docs/decisions.md#speed)
     screened: int = Field(12, ge=1)
     ransac_iterations: int = Field(200, ge=1)  # at most; fewer once an all-inlier draw is sure
     ransac_threshold: float = Field(0.08, gt=0)  # inlier distance, share of the reference's scale
@@ -59,8 +57,7 @@ class EngineSettings(BaseModel):
     refine_best: int = Field(4, ge=1)  # hypotheses refined with ICP (at most 2 a part)
     icp_iterations: int = Field(12, ge=1)
     # when no refined hypothesis fits well, the best two of this many more parts are refined
-    # (on half the ICP budget; the best of them then on the rest): 4 took depth views of
-    # unseen parts from 91.7 to 97.2 % success at +2 ms median (docs/operations.md); 0: off
+    # (on half the ICP budget; docs/decisions.md#refine); 0: off
     rescued_parts: int = Field(4, ge=0)
     # the best pose turned by its part's near-symmetries: this many of the turned poses nearest
     # the surface are refined, and the one nearest after refining answered (0: not tried)

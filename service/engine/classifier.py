@@ -1,4 +1,4 @@
-"""Step 3b: the linear classifier of eq. (4) over the registered references.
+"""Step 4, classify: the linear classifier of eq. (4) over the registered references.
 
 ``y_i = w_i . x + b_i`` on the flattened grid ``x``; the reported score is
 eq. (4)'s normalisation, each class's positive output over the sum of them.

@@ -5,17 +5,18 @@
 0. set aside the surroundings (the table under the part, stray points): one or two readings;
 1. normalise: the network's sample of a reading (centred and scaled in ``map``);
 2. map every point to 2-D with the network (ONNX);
-3. grid the mapped points and classify them (eq. 4, and the rendered views whose grids look
-   most like the observation's): the candidate parts, ranked;
-4. hypothesise poses of each candidate, 5. verify them (fit x coverage), 6. refine the best
+3. grid: bin the mapped points into the 64x64 grid;
+4. classify: eq. (4)'s scores, the candidate parts of a plausible size ranked by them (and,
+   for single views, the parts whose rendered views' grids look most like the observation's);
+5. hypothesise poses of each candidate, 6. verify them (fit x coverage), 7. refine the best
    (point-to-plane ICP), pass by pass (``search.Search``): the whole part, single views, the
    mapped pairs, until one fits excellently; then the best pose's flips and near-symmetries;
-7. decide: the best fit over every candidate and hypothesis, its canonical pose, the poses
+8. decide: the best fit over every candidate and hypothesis, its canonical pose, the poses
    that fit alike, the alignment error; then the calibrated confidence and the verdict.
 
 The gallery is an immutable snapshot swapped whole on every change, so any number of threads
-may align while one registers or removes a reference. The engine's terms: docs/decisions.md,
-"Glossary".
+may align while one registers or removes a reference. The engine's terms are defined in
+docs/decisions.md, "Glossary".
 """
 
 from __future__ import annotations
@@ -241,7 +242,7 @@ class Engine:
             raise UnknownReference(f"no reference named {name!r}") from None
 
     def recognise(self, mapped: np.ndarray) -> tuple[str, float]:
-        """Step 3 alone: the label eq. (4) gives a mapped cloud, and its score."""
+        """Steps 3-4 alone: the label eq. (4) gives a mapped cloud, and its score."""
         classifier = self._snapshot.classifier
         if classifier is None:
             raise EmptyGallery("no reference is registered: register one with POST /references")
@@ -274,11 +275,11 @@ class Engine:
         for reading in readings:
             if answer is not None and answer.fit * answer.coverage >= self.settings.excellent:
                 break
-            found = self.align_reading(query, reading)  # 1-7
+            found = self.align_reading(query, reading)  # 1-8
             found.points_set_aside = reading.set_aside
             if answer is None or found.fit * found.coverage > answer.fit * answer.coverage:
                 answer, seen = found, reading.points
-        if answer.verdict != "no_match":  # 7. How far to trust it.
+        if answer.verdict != "no_match":  # 8. How far to trust it.
             self.judge(answer, min_confidence, query, flatness(seen))
         answer.timings_ms = query.clock.total()
         return answer
@@ -308,22 +309,22 @@ class Engine:
         return readings
 
     def align_reading(self, query: Query, reading: Reading) -> Alignment:
-        """Steps 1-7 on one reading of the observation."""
+        """Steps 1-8 on one reading of the observation."""
         if not has_extent(radius(reading.points), float(np.abs(reading.points).max())):
             return self._at_one_place(query, reading.points)
         observed = self.normalise(query, reading)  # 1
         observed.mapped = self.map(observed.points)  # 2
         query.clock.lap("map")
         observed.grid = grid(observed.mapped)  # 3
-        ranking = self.classify(query, observed)
+        ranking = self.classify(query, observed)  # 4
         search = Search(self.settings, query, observed)
-        fits = self.search(query, observed, ranking, search)  # 4-6
+        fits = self.search(query, observed, ranking, search)  # 5-7
         if not fits:  # nothing of a plausible size: no search over the wrong sizes
             return self._unanswered(query.snapshot, query.allowed, observed.points, ranking.scores)
         fits.sort(key=lambda f: -f.score)
         if query.refine:
-            fits = search.finish(fits)  # 6, the best pose
-        return self.decide(query, observed, ranking, search, fits)  # 7
+            fits = search.finish(fits)  # 7, the best pose
+        return self.decide(query, observed, ranking, search, fits)  # 8
 
     def normalise(self, query: Query, reading: Reading) -> Observed:
         """Step 1: the network's sample of the reading (centring and scaling: ``map``)."""
@@ -333,7 +334,7 @@ class Engine:
         return Observed(scene, sample, radius(sample), reading.spacing)
 
     def classify(self, query: Query, observed: Observed) -> Ranking:
-        """Step 3: eq. (4)'s scores of the grid, and the candidates of a plausible size ranked
+        """Step 4: eq. (4)'s scores of the grid, and the candidates of a plausible size ranked
         by them; the first ``top_k`` are verified in every pass."""
         snapshot, settings = query.snapshot, self.settings
         scores = snapshot.classifier.scores(observed.grid)
@@ -348,7 +349,7 @@ class Engine:
     def search(
         self, query: Query, observed: Observed, ranking: Ranking, search: Search
     ) -> list[Fit]:
-        """Steps 4-6, pass by pass until a fit is excellent: the whole part (principal axes),
+        """Steps 5-7, pass by pass until a fit is excellent: the whole part (principal axes),
         single views (rendered views), the pairs the learned mapping makes."""
         fits: list[Fit] = []
         for plan_of in (self._whole_part, self._single_views, self._mapped_pairs):
@@ -357,9 +358,9 @@ class Engine:
             plan = plan_of(query, observed, ranking)
             if plan is None:
                 continue
-            made = search.hypothesise(plan)  # 4
-            found = search.verify(made, plan)  # 5
-            fits += search.refine(found, plan)  # 6
+            made = search.hypothesise(plan)  # 5
+            found = search.verify(made, plan)  # 6
+            fits += search.refine(found, plan)  # 7
         return fits
 
     def _whole_part(self, query: Query, observed: Observed, ranking: Ranking) -> Plan | None:
@@ -397,7 +398,7 @@ class Engine:
     def decide(
         self, query: Query, observed: Observed, ranking: Ranking, search: Search, fits: list[Fit]
     ) -> Alignment:
-        """Step 7: the best fit x coverage over every candidate and hypothesis, its canonical
+        """Step 8: the best fit x coverage over every candidate and hypothesis, its canonical
         pose among those its symmetry makes equivalent, the poses that fit alike, and the
         alignment error on every point of the reading."""
         snapshot = query.snapshot
@@ -454,7 +455,7 @@ class Engine:
     def judge(
         self, answer: Alignment, min_confidence: float | None, query: Query, flat: float
     ) -> None:
-        """Step 7's confidence, verdict and reasons (``service.engine.confidence``). ``flat``
+        """Step 8's confidence, verdict and reasons (``service.engine.confidence``). ``flat``
         is the observation's ``flatness``: one flat face of a part that is not flat itself
         fixes neither its turn about the face's normal nor where along the face it lies, so
         such an answer is never a "match"."""
@@ -600,9 +601,8 @@ class Engine:
     def _plausible(scales: np.ndarray, size: float, ratio: tuple[float, float]) -> np.ndarray:
         """Which references' scales could give an observation of this radius.
 
-        The grid is scale-free, but a sensor measures sizes: a full view's radius is the
-        reference's scale within a few per cent, a single camera's view 0.85-1.45 of it
-        (measured on the evaluation's cases), so a size far outside that is another part.
+        The grid is scale-free, but a sensor measures sizes: a size far outside a part's own
+        is another part (docs/decisions.md#classify).
         """
         low, high = ratio
         return (size >= low * scales) & (size <= high * scales)

@@ -1,4 +1,4 @@
-"""Step 4: pose hypotheses for one candidate reference, from four sources.
+"""Step 5, hypothesise: pose hypotheses for one candidate reference, from four sources.
 
 - ``views``: the observation's principal frame matched with the frames of the reference's
   rendered views that look most like it (four proper sign flips each); with a viewpoint, only

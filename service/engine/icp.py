@@ -1,4 +1,4 @@
-"""Step 5: refine a pose with robust point-to-plane ICP on the reference's distance field.
+"""Step 7, refine: a pose refined with robust point-to-plane ICP on the reference's distance field.
 
 Each iteration carries the observed points into the model frame, looks up the nearest reference
 point and its normal in the distance field (O(1), no tree), and solves the linearised
@@ -13,10 +13,8 @@ sliding directions the data do not fix. Stops when the update turns by less than
 
 Told where the camera was (``viewpoint``), the pairs of the last, precise iterations leave out
 reference samples that face away from it: a depth camera sees no surface that turns its back
-to it, but across a thin wall (a hollow brick's) the nearest sample is as often the far
-side's, and on the two of them together refinement settled in minima of its own, the brick
-shifted toward the camera by 0.02-0.06 of its scale and turned 1-4 degrees, with half its
-observed points paired with samples facing away (a sixth to a quarter at the true pose).
+to it, but across a thin wall the nearest sample is as often the far side's
+(docs/decisions.md#refine).
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """What one ``Engine.align`` call works on: the query (what was asked, and its clock) and one
-reading of the observation as steps 1-3 leave it."""
+reading of the observation as steps 1-3 leave it, and step 4's ranking of the parts."""
 
 from __future__ import annotations
 
@@ -56,7 +56,7 @@ class Observed:
 
 @dataclass(frozen=True)
 class Ranking:
-    """Step 3's answer: eq. (4)'s score per classifier row, the rows of a plausible size best
+    """Step 4's answer: eq. (4)'s score per classifier row, the rows of a plausible size best
     first, the few verified in every pass, and eq. (4)'s first choice when it is sure of it."""
 
     scores: np.ndarray

@@ -1,4 +1,4 @@
-"""Steps 4-6 of ``Engine.align`` for one reading: hypothesise poses of each candidate part,
+"""Steps 5-7 of ``Engine.align`` for one reading: hypothesise poses of each candidate part,
 verify them (fit x coverage), refine the best (point-to-plane ICP), pass by pass; then the
 best pose's flips, near-symmetries and finishing refinement (``finish``).
 
@@ -86,7 +86,7 @@ def sure_first(scores: np.ndarray, ranked: np.ndarray) -> int | None:
 
 
 class Search:
-    """Steps 4-6 for one reading: hypothesise, verify, refine, pass by pass."""
+    """Steps 5-7 for one reading: hypothesise, verify, refine, pass by pass."""
 
     def __init__(self, settings: EngineSettings, query: Query, observed: Observed):
         self.settings = settings
@@ -113,7 +113,7 @@ class Search:
     # --- one pass -------------------------------------------------------------------------
 
     def hypothesise(self, plan: Plan) -> list[tuple[int, Hypotheses]]:
-        """Step 4: every planned row's pose hypotheses from its sources."""
+        """Step 5: every planned row's pose hypotheses from its sources."""
         made = [
             (row, self.hypotheses_of(self.entry(row), chosen))
             for row, chosen in plan.sources.items()
@@ -122,7 +122,7 @@ class Search:
         return made
 
     def verify(self, made: list[tuple[int, Hypotheses]], plan: Plan) -> list[Fit]:
-        """Step 5: each row's hypotheses screened by a quick look on a few points (the
+        """Step 6: each row's hypotheses screened by a quick look on a few points (the
         ``screened`` best kept), then fit x coverage on the cheap sample; best first."""
         keep = plan.screened or self.settings.screened
         fits: list[Fit] = []
@@ -137,7 +137,7 @@ class Search:
         return fits
 
     def refine(self, fits: list[Fit], plan: Plan) -> list[Fit]:
-        """Step 6: the pass's best fits refined (``refine_best_first``). Returns each row's
+        """Step 7: the pass's best fits refined (``refine_best_first``). Returns each row's
         best fit, and every refined one. A row's best is its best refined fit where it has
         one: an unrefined score is the cheap sample's, and one lucky there would win
         unrefined, past the near-symmetries and the polish."""
@@ -305,7 +305,7 @@ class Search:
     # --- the best pose, finished ----------------------------------------------------------
 
     def finish(self, fits: list[Fit]) -> list[Fit]:
-        """Step 6 for the best pose (``fits`` best first): turned by its part's flips and
+        """Step 7 for the best pose (``fits`` best first): turned by its part's flips and
         near-symmetries, each refined, the best first; then its refinement finished."""
         fits = self.flip(fits)
         self.clock.lap("flips")

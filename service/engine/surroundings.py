@@ -1,4 +1,4 @@
-"""Step 0: set aside what surrounds the part: the table it rests on, and stray points.
+"""Step 0, set aside: set aside what surrounds the part: the table it rests on, and stray points.
 
 A cell's camera sees the part on its support, with a few stray points (edges, reflections)
 and sometimes other things in view. Before recognition:

@@ -4,7 +4,7 @@ figures that chose it: docs/decisions.md, under the step's heading."""
 
 from __future__ import annotations
 
-# --- 0. Surroundings: the support plane and stray points (docs/decisions.md#surroundings) ---
+# --- 0. Surroundings: the support plane and stray points (docs/decisions.md#surroundings) ---------
 SURROUNDINGS_SAMPLE = 1024  # decisions are made on a sample of this many points
 PLANE_SHARE = 0.2  # a support plane holds at least this share of the points ...
 PLANE_SHARE_BLIND = 0.5  # ... this share, when the viewpoint is not known
@@ -20,27 +20,27 @@ LINK_SPACINGS = 3.0  # neighbours closer than this many spacings are one group
 STRAY_SHARE = 0.02  # a group of less than this share of the points ...
 STRAY_GAP = 10.0  # ... this many spacings from any larger group is stray
 
-# --- 3. Grid and classify (docs/decisions.md#classify) ---------------------------------------
+# --- 3-4. Grid and classify (docs/decisions.md#classify) ------------------------------------------
 POOL = 2  # eq. (4)'s input: grid bins pooled per side after smoothing
 VIEW_POOL = 4  # nearest-view features: the smoothed grid pooled 4x4 (to 16x16 = 256 values)
 VIEW_POINTS = 512  # a rendered view's grid is made of at most this many of its points
 FIRST_LEAD = 2.0  # eq. (4) is sure of its first choice at this many times the next score
 
-# --- 4. Hypothesise (docs/decisions.md#hypothesise) -------------------------------------------
+# --- 5. Hypothesise (docs/decisions.md#hypothesise) -----------------------------------------------
 VIEWPOINT_AGREEMENT_DEG = 50.0  # a view hypothesis's camera within this of the viewpoint's
 ROUND_SPREADS = 0.1  # two principal spreads this close: a round or square section ...
 ROUND_TURN_DEG = 45.0  # ... whose principal-axes matches are also turned by every this much
 QUICK_POINTS = 24  # observed and expected points of the quick look that screens hypotheses
 WHOLE_SCREENED = 4  # principal-axes hypotheses verified in the whole-part pass (4 sign flips)
 
-# --- 5. Verify (docs/decisions.md#verify) ----------------------------------------------------
+# --- 6. Verify (docs/decisions.md#verify) ---------------------------------------------------------
 EXPECTED = 128  # expected-visible points drawn per rendered view for coverage
 OCCUPANCY_SPACINGS = 1.5  # the occupancy's voxel is at least this many observed spacings
 PATCH_SPACINGS = 2.5  # a sample's tangent patch reaches this many sample spacings
 FIELD_RESOLUTION = 40  # distance-field voxels along the reference's longest side
 FIELD_MARGIN = 0.3  # the field reaches this share of the scale beyond the bounding box
 
-# --- 6. Refine (docs/decisions.md#refine) ----------------------------------------------------
+# --- 7. Refine (docs/decisions.md#refine) ---------------------------------------------------------
 WHOLE_REFINED = 2  # hypotheses refined in each whole-part pass
 ENOUGH_BEHIND = 0.8  # a hypothesis this far below an excellent refined one is not refined
 FAR_BELOW = 0.5  # nor one below this share of the best hypothesis before refining
@@ -59,7 +59,7 @@ NEAR_SCREENED = 8
 SCREEN_ALIKE = 1.5  # a turned pose this much farther before refining is not refined
 RESIDUAL_ALIKE = 1.15  # a turned pose this much farther from the surface is no alternative
 
-# --- 7. Decide (docs/decisions.md#decide) ----------------------------------------------------
+# --- 8. Decide (docs/decisions.md#decide) ---------------------------------------------------------
 DIFFERENT_DEG = 10.0  # poses this far apart (symmetry accounted for) are different answers
 ALIKE = 0.9  # ... and fit alike within this share of the best's fit x coverage
 MAX_ALTERNATIVES = 3
@@ -69,5 +69,5 @@ RIGHT_EITHER_WAY = 0.02
 FLAT = 0.03  # an observation this flat (smallest over largest principal spread) is one face
 POOR_FIT = 0.8  # an answer whose part holds less of the cloud may be a cloud in other units
 
-# --- Registration: what one camera sees (docs/decisions.md#registration) ---------------------
+# --- Registration: what one camera sees (docs/decisions.md#registration) --------------------------
 HPR_LOG_RADIUS = 2.8  # hidden-point removal's flipping sphere: 10**this times the extent
