@@ -43,6 +43,7 @@ from service.engine.mapping import Mapper
 from service.engine.normalize import has_extent, normalize, radius, subsample
 from service.engine.normals import estimate_normals, mesh_normals, orient_by_views
 from service.engine.principal_axes import flatness
+from service.engine.projection import DepthImage
 from service.engine.query import Observed, Query, Ranking, Stopwatch
 from service.engine.reference import Reference
 from service.engine.scene import Instance, frame_indices, near_surface, settle_claims
@@ -51,6 +52,7 @@ from service.engine.segments import adjacent, segments
 from service.engine.supports import apply_supports, set_aside_supports
 from service.engine.surroundings import Reading, as_is, set_aside_surroundings
 from service.engine.symmetry import find_symmetry
+from service.engine.templates import likeliest, place_views
 from service.engine.tuning import (
     ALIKE,
     CLAIM_TOLERANCE,
@@ -65,6 +67,8 @@ from service.engine.tuning import (
     MIN_SEGMENT,
     POOR_FIT,
     RIGHT_EITHER_WAY,
+    TEMPLATE_PARTS,
+    TEMPLATE_SIZES,
     THIN_PER_SCALE,
     VIEW_POINTS,
     WHOLE_REFINED,
@@ -569,10 +573,11 @@ class Engine:
         clock.lap("thin")
         keep, supports = set_aside_supports(thin, angle, query.rng)
         rest = thin.take(keep)
+        camera = DepthImage.of(thin)
         clock.lap("supports")
         labels = segments(rest, angle)
         clock.lap("segments")
-        instances = self._instances(query, rest, labels, max_instances, min_confidence)
+        instances = self._instances(query, rest, labels, camera, max_instances, min_confidence)
         clock.lap("instances")
         instances = settle_claims(instances, len(rest), KEEP_SHARE)
         clock.lap("global check")
@@ -591,6 +596,7 @@ class Engine:
         query: Query,
         rest: Frame,
         labels: np.ndarray,
+        camera: DepthImage | None,
         max_instances: int,
         min_confidence: float | None,
     ) -> list[Instance]:
@@ -601,7 +607,7 @@ class Engine:
         free = np.ones(len(rest), dtype=bool)
         instances: list[Instance] = []
         sizes = np.bincount(labels) if len(labels) else np.zeros(0, int)
-        search = lambda region: self._instance(query, rest, region, free, min_confidence)  # noqa: E731
+        search = lambda region: self._instance(query, rest, region, free, camera, min_confidence)  # noqa: E731
         failed = []
         for segment in np.argsort(-sizes, kind="stable"):
             if sizes[segment] < MIN_SEGMENT:
@@ -626,18 +632,68 @@ class Engine:
                 free[found.claimed] = False
         return instances
 
-    def _instance(self, query, rest, region, free, min_confidence) -> Instance | None:
-        """The chain's answer for the points ``region`` of ``rest``, as an instance claiming
-        the free points near its surface; None if it is no registered part or explains too
-        little of the region."""
+    def _instance(self, query, rest, region, free, camera, min_confidence) -> Instance | None:
+        """The chain's answer for the points ``region`` of ``rest`` as an instance claiming
+        the free points near its surface; else, the segment may hold several parts touching:
+        the likeliest parts' views placed over it (``templates``), and the chain asked about
+        the points the best placed view explains. None if neither explains enough."""
+        points = rest.points[region]
+        answer = self._segment_answer(query, points, rest.viewpoint, min_confidence)
+        found = self._claim(query, rest, region, free, answer)
+        if found is not None:
+            return found
+        spacing = self._spacing(rest)
+        tolerance = CLAIM_TOLERANCE * self.settings.tolerance
+        for entry in self._template_parts(query, points, rest.viewpoint, spacing, camera):
+            for pose in place_views(
+                entry, points, rest.viewpoint, spacing, self.settings.tolerance, query.rng, camera
+            )[:1]:
+                close, _ = near_surface(
+                    points,
+                    entry,
+                    pose.rotation,
+                    pose.translation,
+                    tolerance * entry.reference.scale,
+                )
+                if len(close) < MIN_EXPLAINED:
+                    continue
+                again = self._segment_answer(query, points[close], rest.viewpoint, min_confidence)
+                found = self._claim(query, rest, region, free, again)
+                if found is not None:
+                    return found
+        return None
+
+    def _segment_answer(self, query, points, viewpoint, min_confidence) -> Alignment:
+        """The chain's answer for a segment's points, nothing set aside."""
         candidates = [query.snapshot.classifier.labels[row] for row in query.allowed]
-        answer = self.align(
-            rest.points[region],
+        return self.align(
+            points,
             candidates,
-            viewpoint=rest.viewpoint,
+            viewpoint=viewpoint,
             min_confidence=min_confidence,
             surroundings=False,
         )
+
+    def _template_parts(self, query, points, viewpoint, spacing, camera) -> list[Entry]:
+        """The parts to place over a segment: of those that fit inside it and are not far
+        smaller (``TEMPLATE_SIZES``), the ``TEMPLATE_PARTS`` whose views fit it best."""
+        size = radius(points)
+        low, high = TEMPLATE_SIZES
+        rows = [r for r in query.allowed if low * size <= query.snapshot.scales[r] <= high * size]
+        labels = query.snapshot.classifier.labels
+        entries = [query.snapshot.entries[labels[r]] for r in rows]
+        return likeliest(entries, points, viewpoint, spacing, query.rng, camera, TEMPLATE_PARTS)
+
+    @staticmethod
+    def _spacing(frame: Frame) -> float:
+        """The distance between neighbouring points of a (thinned) frame at its median range."""
+        if not len(frame):
+            return 0.0
+        return frame.pixel_angle() * frame.step * float(np.median(frame.ranges()))
+
+    def _claim(self, query, rest, region, free, answer) -> Instance | None:
+        """``answer`` as an instance claiming the free points near its surface; None if it is
+        no registered part, or explains fewer than ``MIN_EXPLAINED`` of ``region``."""
         if answer.verdict == "no_match" or (answer.confidence or 0.0) < INSTANCE_FLOOR:
             return None
         entry = query.snapshot.entries[answer.label]
