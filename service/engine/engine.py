@@ -49,7 +49,7 @@ from service.engine.reference import Reference
 from service.engine.scene import Instance, frame_indices, near_surface, settle_claims
 from service.engine.search import Plan, Search, excellent, sure_first
 from service.engine.segments import adjacent, segments
-from service.engine.supports import apply_supports, set_aside_supports
+from service.engine.supports import Noise, apply_supports, set_aside_supports
 from service.engine.surroundings import Reading, as_is, set_aside_surroundings
 from service.engine.symmetry import find_symmetry
 from service.engine.templates import likeliest, place_views
@@ -65,6 +65,7 @@ from service.engine.tuning import (
     MAX_TRIES,
     MIN_EXPLAINED,
     MIN_SEGMENT,
+    NOISE_TOLERANCES,
     POOR_FIT,
     RIGHT_EITHER_WAY,
     TEMPLATE_PARTS,
@@ -282,11 +283,14 @@ class Engine:
         viewpoint: np.ndarray | None = None,
         min_confidence: float | None = None,
         surroundings: bool = True,
+        noise: float = 0.0,
     ) -> Alignment:
         """Recognise and pose the object in ``points``; ``viewpoint`` is where the sensor was,
         in the cloud's frame, if known; below ``min_confidence`` the verdict is never "match".
-        Without ``surroundings``, nothing is set aside (a frame's segment)."""
+        Without ``surroundings``, nothing is set aside (a frame's segment); ``noise``: the
+        sensor's depth noise where the part lies, if known (``Query.tolerance``)."""
         query = self.query(candidates, top_k, refine, hypotheses, viewpoint)
+        query.noise = noise
         scene = np.asarray(points, dtype=np.float64)
         if surroundings:
             readings = self.set_aside(query, scene)  # 0
@@ -577,11 +581,14 @@ class Engine:
         clock.lap("supports")
         labels = segments(rest, angle)
         clock.lap("segments")
-        instances = self._instances(query, rest, labels, camera, max_instances, min_confidence)
+        noise = Noise(supports[0] if supports else None)
+        instances = self._instances(
+            query, rest, labels, (camera, noise), max_instances, min_confidence
+        )
         clock.lap("instances")
         instances = settle_claims(instances, len(rest), KEEP_SHARE)
         clock.lap("global check")
-        return self._scene_answer(frame, supports, angle, instances, clock)
+        return self._scene_answer(frame, supports, angle, instances, noise, clock)
 
     def _frame_scales(self, query: Query, frame: Frame) -> np.ndarray:
         """The scales of the references a part in this frame could be: those no larger than
@@ -596,7 +603,7 @@ class Engine:
         query: Query,
         rest: Frame,
         labels: np.ndarray,
-        camera: DepthImage | None,
+        sensor: tuple[DepthImage | None, Noise],
         max_instances: int,
         min_confidence: float | None,
     ) -> list[Instance]:
@@ -607,7 +614,7 @@ class Engine:
         free = np.ones(len(rest), dtype=bool)
         instances: list[Instance] = []
         sizes = np.bincount(labels) if len(labels) else np.zeros(0, int)
-        search = lambda region: self._instance(query, rest, region, free, camera, min_confidence)  # noqa: E731
+        search = lambda region: self._instance(query, rest, region, free, sensor, min_confidence)  # noqa: E731
         failed = []
         for segment in np.argsort(-sizes, kind="stable"):
             if sizes[segment] < MIN_SEGMENT:
@@ -632,38 +639,40 @@ class Engine:
                 free[found.claimed] = False
         return instances
 
-    def _instance(self, query, rest, region, free, camera, min_confidence) -> Instance | None:
+    def _instance(self, query, rest, region, free, sensor, min_confidence) -> Instance | None:
         """The chain's answer for the points ``region`` of ``rest`` as an instance claiming
         the free points near its surface; else, the segment may hold several parts touching:
         the likeliest parts' views placed over it (``templates``), and the chain asked about
-        the points the best placed view explains. None if neither explains enough."""
+        the points the best placed view explains. None if neither explains enough.
+        ``sensor``: the frame's depth image (if it has one) and its noise."""
+        camera, noise = sensor
         points = rest.points[region]
-        answer = self._segment_answer(query, points, rest.viewpoint, min_confidence)
-        found = self._claim(query, rest, region, free, answer)
+        sigma = noise.at(points, rest.viewpoint)
+        answer = self._segment_answer(query, points, rest.viewpoint, min_confidence, sigma)
+        found = self._claim(query, rest, region, free, answer, sigma)
         if found is not None:
             return found
         spacing = self._spacing(rest)
-        tolerance = CLAIM_TOLERANCE * self.settings.tolerance
         for entry in self._template_parts(query, points, rest.viewpoint, spacing, camera):
+            tolerance = query.tolerance(self.settings.tolerance, entry.reference.scale)
+            tolerance = max(tolerance, NOISE_TOLERANCES * sigma)
             for pose in place_views(
-                entry, points, rest.viewpoint, spacing, self.settings.tolerance, query.rng, camera
+                entry, points, rest.viewpoint, spacing, tolerance, query.rng, camera
             )[:1]:
                 close, _ = near_surface(
-                    points,
-                    entry,
-                    pose.rotation,
-                    pose.translation,
-                    tolerance * entry.reference.scale,
+                    points, entry, pose.rotation, pose.translation, CLAIM_TOLERANCE * tolerance
                 )
                 if len(close) < MIN_EXPLAINED:
                     continue
-                again = self._segment_answer(query, points[close], rest.viewpoint, min_confidence)
-                found = self._claim(query, rest, region, free, again)
+                again = self._segment_answer(
+                    query, points[close], rest.viewpoint, min_confidence, sigma
+                )
+                found = self._claim(query, rest, region, free, again, sigma)
                 if found is not None:
                     return found
         return None
 
-    def _segment_answer(self, query, points, viewpoint, min_confidence) -> Alignment:
+    def _segment_answer(self, query, points, viewpoint, min_confidence, noise) -> Alignment:
         """The chain's answer for a segment's points, nothing set aside."""
         candidates = [query.snapshot.classifier.labels[row] for row in query.allowed]
         return self.align(
@@ -672,6 +681,7 @@ class Engine:
             viewpoint=viewpoint,
             min_confidence=min_confidence,
             surroundings=False,
+            noise=noise,
         )
 
     def _template_parts(self, query, points, viewpoint, spacing, camera) -> list[Entry]:
@@ -691,13 +701,15 @@ class Engine:
             return 0.0
         return frame.pixel_angle() * frame.step * float(np.median(frame.ranges()))
 
-    def _claim(self, query, rest, region, free, answer) -> Instance | None:
+    def _claim(self, query, rest, region, free, answer, noise) -> Instance | None:
         """``answer`` as an instance claiming the free points near its surface; None if it is
         no registered part, or explains fewer than ``MIN_EXPLAINED`` of ``region``."""
         if answer.verdict == "no_match" or (answer.confidence or 0.0) < INSTANCE_FLOOR:
             return None
         entry = query.snapshot.entries[answer.label]
-        tolerance = CLAIM_TOLERANCE * self.settings.tolerance * entry.reference.scale
+        tolerance = CLAIM_TOLERANCE * max(
+            self.settings.tolerance * entry.reference.scale, NOISE_TOLERANCES * noise
+        )
         available = np.flatnonzero(free)
         close, distance = near_surface(
             rest.points[available], entry, answer.rotation, answer.translation, tolerance
@@ -707,11 +719,18 @@ class Engine:
             return None
         return Instance(answer, entry, claimed, distance)
 
-    def _scene_answer(self, frame, supports, angle, instances, clock) -> SceneAnswer:
+    def _scene_answer(self, frame, supports, angle, instances, noise, clock) -> SceneAnswer:
         """The detections at the frame's full resolution, best first."""
         seen = apply_supports(frame, supports, angle)
         kept = frame.take(seen)
-        tolerance = lambda entry: CLAIM_TOLERANCE * self.settings.tolerance * entry.reference.scale  # noqa: E731
+        sigma = {id(i): noise.at(i.centre[None], frame.viewpoint) for i in instances}
+
+        def tolerance(instance: Instance) -> float:
+            scale = instance.entry.reference.scale
+            return CLAIM_TOLERANCE * max(
+                self.settings.tolerance * scale, NOISE_TOLERANCES * sigma[id(instance)]
+            )
+
         owned = frame_indices(kept, instances, tolerance)
         detections = [
             Detection(i.answer, kept.index[mine], i.entry.symmetry.describe())

@@ -102,3 +102,5 @@ TEMPLATE_PARTS = 3  # parts whose views are placed over a segment where the chai
 PINHOLE_RESIDUAL_PX = 0.75  # a frame whose pixels fit a pinhole this well has a depth image
 RANK_EVERY, RANK_ANGLES, RANK_SEEDS = 4, 8, 3  # ... which parts: every 4th view, 8 turns, 3 seeds
 TEMPLATE_SIZES = (0.25, 1.15)  # ... of a scale this share of the segment's radius
+NOISE_TOLERANCES = 2.0  # a fit's tolerance is at least this many times the sensor's noise
+SENSOR_NOISE = 0.0015  # the depth noise's share of the range where no support measures it
