@@ -1,6 +1,7 @@
 """The README's quick-start files (``examples/``, from ``scripts/make_examples.py``): the part
-registers from its STL, and its depth image with the mask, its scan and its raw float32 cloud
-are each answered as that part, near the pose ``examples/truth.json`` records."""
+registers from its STL, and its depth image (with its mask, or alone on its table), its scan and
+its raw float32 cloud are each answered as that part, near the pose ``examples/truth.json``
+records; ``/detect`` finds it in the whole depth image, on the mask's pixels."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import json
 
 import numpy as np
 import pytest
+from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from tests.conftest import REPO
@@ -52,9 +54,23 @@ def test_the_depth_image_with_its_mask(registered):
     near_the_truth(registered.client.post("/align", data=INTRINSICS, files=files), "depth.png")
 
 
-def test_the_depth_image_without_its_mask_is_refused_naming_the_mask(registered):
+def test_the_depth_image_alone_sets_its_table_aside(registered):
     answer = registered.client.post("/align", data=INTRINSICS, files={"file": read("depth.png")})
-    assert answer.status_code == 422 and "mask" in answer.json()["detail"], answer.text
+    near_the_truth(answer, "depth.png")
+    table = TRUTH["depth.png"]["pixels"] - TRUTH["depth.png"]["part_pixels"]
+    assert answer.json()["points_set_aside"] > 0.9 * table, answer.json()["points_set_aside"]
+
+
+def test_the_whole_frame_through_detect_finds_the_part_in_its_mask(registered):
+    answer = registered.client.post("/detect", data=INTRINSICS, files={"file": read("depth.png")})
+    assert answer.status_code == 200, answer.text
+    (found,) = answer.json()["detections"]
+    assert found["label"] == PART and found["verdict"] == "match", found["reasons"]
+    turned = np.asarray(found["rotation"]).T @ np.asarray(TRUTH["depth.png"]["rotation"])
+    assert np.degrees(Rotation.from_matrix(turned).magnitude()) < 2.0
+    mask = np.asarray(Image.open(EXAMPLES / "part-mask.png")).ravel() > 0
+    pixels = np.asarray(found["indices"])  # row * width + col
+    assert mask[pixels].mean() > 0.95 and mask[pixels].sum() > 0.9 * mask.sum()
 
 
 def test_the_scan_seen_from_its_camera(registered):
