@@ -68,6 +68,7 @@ from service.engine.tuning import (
     NOISE_TOLERANCES,
     POOR_FIT,
     RIGHT_EITHER_WAY,
+    SEGMENT_POINTS,
     TEMPLATE_PARTS,
     TEMPLATE_SIZES,
     THIN_PER_SCALE,
@@ -673,10 +674,11 @@ class Engine:
         return None
 
     def _segment_answer(self, query, points, viewpoint, min_confidence, noise) -> Alignment:
-        """The chain's answer for a segment's points, nothing set aside."""
+        """The chain's answer for a segment's points (``SEGMENT_POINTS`` of them at most),
+        nothing set aside."""
         candidates = [query.snapshot.classifier.labels[row] for row in query.allowed]
         return self.align(
-            points,
+            points[subsample(points, SEGMENT_POINTS, query.rng)],
             candidates,
             viewpoint=viewpoint,
             min_confidence=min_confidence,

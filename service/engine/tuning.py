@@ -104,3 +104,6 @@ RANK_EVERY, RANK_ANGLES, RANK_SEEDS = 4, 8, 3  # ... which parts: every 4th view
 TEMPLATE_SIZES = (0.25, 1.15)  # ... of a scale this share of the segment's radius
 NOISE_TOLERANCES = 2.0  # a fit's tolerance is at least this many times the sensor's noise
 SENSOR_NOISE = 0.0015  # the depth noise's share of the range where no support measures it
+SEED_SAMPLE = 2048  # seeds are spread over a sample of this many of a segment's points
+TEMPLATE_ICP_POINTS = 384  # a placed view is refined on this many of the points around it
+SEGMENT_POINTS = 4096  # the chain answers a segment from this many of its points at most
