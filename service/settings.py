@@ -96,8 +96,10 @@ class GallerySettings(BaseModel):
 
 class LimitSettings(BaseModel):
     min_points: int = Field(32, ge=3)
-    max_points: int = Field(200_000, ge=1)
-    max_body_bytes: int = Field(32 * 1024 * 1024, ge=1024)
+    # valid points of a cloud or frame: a 2,048 x 1,536 camera's (missing pixels not counted)
+    max_points: int = Field(2048 * 1536, ge=1)
+    # a 2,048 x 1,536 binary PCD of x y z rgb floats (binary_compressed: less)
+    max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024)
     request_timeout_s: float = Field(30.0, gt=0)  # the engine's work for one request; then 504
     max_concurrent_align: int | None = Field(None, ge=1)  # default: server.workers_threads
     queue_timeout_s: float = Field(5.0, ge=0)  # wait for a free slot; then 503 + Retry-After

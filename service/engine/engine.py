@@ -30,12 +30,13 @@ from scipy.spatial.transform import Rotation
 
 from service.engine import confidence
 from service.engine.alignment import alignment_error
-from service.engine.answer import Alignment, AlternativePose
+from service.engine.answer import Alignment, AlternativePose, Detection, SceneAnswer
 from service.engine.classifier import LinearClassifier, view_features, view_gram
 from service.engine.confidence import Calibration
 from service.engine.distance_field import DistanceField
 from service.engine.entry import Entry, Snapshot, stored_surface
 from service.engine.fits import Fit
+from service.engine.frame import Frame
 from service.engine.grid import grid
 from service.engine.icp import Surface
 from service.engine.mapping import Mapper
@@ -44,16 +45,27 @@ from service.engine.normals import estimate_normals, mesh_normals, orient_by_vie
 from service.engine.principal_axes import flatness
 from service.engine.query import Observed, Query, Ranking, Stopwatch
 from service.engine.reference import Reference
+from service.engine.scene import Instance, frame_indices, near_surface, settle_claims
 from service.engine.search import Plan, Search, excellent, sure_first
-from service.engine.surroundings import Reading, set_aside_surroundings
+from service.engine.segments import adjacent, segments
+from service.engine.supports import apply_supports, set_aside_supports
+from service.engine.surroundings import Reading, as_is, set_aside_surroundings
 from service.engine.symmetry import find_symmetry
 from service.engine.tuning import (
     ALIKE,
+    CLAIM_TOLERANCE,
     DIFFERENT_DEG,
     FLAT,
+    INSTANCE_FLOOR,
+    JOIN_PIXELS,
+    KEEP_SHARE,
     MAX_ALTERNATIVES,
+    MAX_TRIES,
+    MIN_EXPLAINED,
+    MIN_SEGMENT,
     POOR_FIT,
     RIGHT_EITHER_WAY,
+    THIN_PER_SCALE,
     VIEW_POINTS,
     WHOLE_REFINED,
     WHOLE_SCREENED,
@@ -265,12 +277,17 @@ class Engine:
         hypotheses: tuple[str, ...] | None = None,
         viewpoint: np.ndarray | None = None,
         min_confidence: float | None = None,
+        surroundings: bool = True,
     ) -> Alignment:
         """Recognise and pose the object in ``points``; ``viewpoint`` is where the sensor was,
-        in the cloud's frame, if known; below ``min_confidence`` the verdict is never "match"."""
+        in the cloud's frame, if known; below ``min_confidence`` the verdict is never "match".
+        Without ``surroundings``, nothing is set aside (a frame's segment)."""
         query = self.query(candidates, top_k, refine, hypotheses, viewpoint)
         scene = np.asarray(points, dtype=np.float64)
-        readings = self.set_aside(query, scene)  # 0
+        if surroundings:
+            readings = self.set_aside(query, scene)  # 0
+        else:
+            readings = [as_is(scene, np.random.default_rng(self.settings.seed))]
         answer, seen = None, scene
         for reading in readings:
             if answer is not None and answer.fit * answer.coverage >= self.settings.excellent:
@@ -528,6 +545,131 @@ class Engine:
                 f"the {len(scene)} points left once stray points are set aside lie at one "
                 "place: there is no shape to recognise; send the part's points"
             ],
+        )
+
+    # --- a whole frame ----------------------------------------------------------------
+
+    def detect(
+        self,
+        frame: Frame,
+        candidates: list[str] | None = None,
+        max_instances: int = 20,
+        roi: tuple[np.ndarray, np.ndarray] | None = None,
+        min_confidence: float | None = None,
+    ) -> SceneAnswer:
+        """Every instance of a registered part in a camera's ``frame``: the supports set
+        aside, the rest split into segments, each searched by the chain until nothing more
+        fits; then one global check among the instances."""
+        query = self.query(candidates, None, True, None, frame.viewpoint)
+        clock = Stopwatch()
+        frame = frame if roi is None else frame.cropped(*roi)
+        scales = self._frame_scales(query, frame)
+        thin = frame.thinned(scales.min() / THIN_PER_SCALE)
+        angle = frame.pixel_angle()
+        clock.lap("thin")
+        keep, supports = set_aside_supports(thin, angle, query.rng)
+        rest = thin.take(keep)
+        clock.lap("supports")
+        labels = segments(rest, angle)
+        clock.lap("segments")
+        instances = self._instances(query, rest, labels, max_instances, min_confidence)
+        clock.lap("instances")
+        instances = settle_claims(instances, len(rest), KEEP_SHARE)
+        clock.lap("global check")
+        return self._scene_answer(frame, supports, angle, instances, clock)
+
+    def _frame_scales(self, query: Query, frame: Frame) -> np.ndarray:
+        """The scales of the references a part in this frame could be: those no larger than
+        the frame (all of them, if none is)."""
+        scales = query.snapshot.scales[query.allowed]
+        size = radius(frame.points) if len(frame) else 0.0
+        fits = scales[scales <= size]
+        return fits if len(fits) else scales
+
+    def _instances(
+        self,
+        query: Query,
+        rest: Frame,
+        labels: np.ndarray,
+        max_instances: int,
+        min_confidence: float | None,
+    ) -> list[Instance]:
+        """Each segment, largest first, searched by the chain; an answer that explains
+        ``MIN_EXPLAINED`` of its points is an instance, they are taken out, and the rest of
+        the segment searched again (``MAX_TRIES`` times at most). Then the segments where
+        nothing was found, joined with a neighbour in the image: a part cut in two."""
+        free = np.ones(len(rest), dtype=bool)
+        instances: list[Instance] = []
+        sizes = np.bincount(labels) if len(labels) else np.zeros(0, int)
+        search = lambda region: self._instance(query, rest, region, free, min_confidence)  # noqa: E731
+        failed = []
+        for segment in np.argsort(-sizes, kind="stable"):
+            if sizes[segment] < MIN_SEGMENT:
+                break
+            for tries in range(MAX_TRIES):
+                region = np.flatnonzero((labels == segment) & free)
+                if len(region) < MIN_SEGMENT or len(instances) >= max_instances:
+                    break
+                found = search(region)
+                if found is None:
+                    failed += [segment] if tries == 0 else []
+                    break
+                instances.append(found)
+                free[found.claimed] = False
+        for a, b in sorted(adjacent(rest, labels, np.array(failed), JOIN_PIXELS)):
+            region = np.flatnonzero(np.isin(labels, (a, b)) & free)
+            if len(region) < MIN_SEGMENT or len(instances) >= max_instances:
+                continue
+            found = search(region)
+            if found is not None:
+                instances.append(found)
+                free[found.claimed] = False
+        return instances
+
+    def _instance(self, query, rest, region, free, min_confidence) -> Instance | None:
+        """The chain's answer for the points ``region`` of ``rest``, as an instance claiming
+        the free points near its surface; None if it is no registered part or explains too
+        little of the region."""
+        candidates = [query.snapshot.classifier.labels[row] for row in query.allowed]
+        answer = self.align(
+            rest.points[region],
+            candidates,
+            viewpoint=rest.viewpoint,
+            min_confidence=min_confidence,
+            surroundings=False,
+        )
+        if answer.verdict == "no_match" or (answer.confidence or 0.0) < INSTANCE_FLOOR:
+            return None
+        entry = query.snapshot.entries[answer.label]
+        tolerance = CLAIM_TOLERANCE * self.settings.tolerance * entry.reference.scale
+        available = np.flatnonzero(free)
+        close, distance = near_surface(
+            rest.points[available], entry, answer.rotation, answer.translation, tolerance
+        )
+        claimed = available[close]
+        if np.isin(claimed, region).sum() < MIN_EXPLAINED:
+            return None
+        return Instance(answer, entry, claimed, distance)
+
+    def _scene_answer(self, frame, supports, angle, instances, clock) -> SceneAnswer:
+        """The detections at the frame's full resolution, best first."""
+        seen = apply_supports(frame, supports, angle)
+        kept = frame.take(seen)
+        tolerance = lambda entry: CLAIM_TOLERANCE * self.settings.tolerance * entry.reference.scale  # noqa: E731
+        owned = frame_indices(kept, instances, tolerance)
+        detections = [
+            Detection(i.answer, kept.index[mine], i.entry.symmetry.describe())
+            for i, mine in zip(instances, owned, strict=True)
+        ]
+        detections.sort(key=lambda d: -(d.answer.confidence or 0.0))
+        explained = sum(len(d.indices) for d in detections)
+        clock.lap("explained points")
+        return SceneAnswer(
+            detections,
+            len(frame),
+            int(seen.sum()) - explained,
+            [s.plane for s in supports],
+            clock.total(),
         )
 
     def _nearest_views(

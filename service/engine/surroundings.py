@@ -225,3 +225,10 @@ def _reading(points, sample, chosen, support, step, thickness=0.0) -> Reading:
         inside &= points @ support[:3] - support[3] > thickness
     observed = points[inside]
     return Reading(observed, len(points) - len(observed), support, step)
+
+
+def as_is(points: np.ndarray, rng: np.random.Generator) -> Reading:
+    """The whole of ``points`` as one reading, nothing set aside (a frame's segment, whose
+    supports are already set aside)."""
+    sample = points[subsample(points, SURROUNDINGS_SAMPLE, rng)]
+    return Reading(points, 0, None, median_spacing(sample, cKDTree(sample)))

@@ -71,3 +71,22 @@ POOR_FIT = 0.8  # an answer whose part holds less of the cloud may be a cloud in
 
 # --- Registration: what one camera sees (docs/decisions.md#registration) --------------------------
 HPR_LOG_RADIUS = 2.8  # hidden-point removal's flipping sphere: 10**this times the extent
+
+# --- Whole frames: supports, segments, instances (docs/decisions.md#detect) ----------------------
+THIN_PER_SCALE = 20  # a frame is thinned to a voxel of the smallest part's scale over this
+SUPPORT_SAMPLE = 2048  # points the support planes are found on
+SUPPORT_SHARE = 0.03  # a support holds at least this share of the frame's points ...
+BEHIND_SHARE = 0.2  # ... and has less than this share of what lies over it behind it
+SUPPORT_CELLS = 4.0  # what lies over a plane: over its cells of this many pixel footprints
+SUPPORT_SPACINGS = 2.0  # its points lie within this many pixel footprints of it ...
+SUPPORT_NOISE = 0.004  # ... plus this share of their range (the sensor's depth noise)
+MAX_SUPPORTS = 6  # a bin's floor and four walls, and the table beside it
+LINK_FOOTPRINTS = 3.0  # neighbouring pixels this many footprints apart are one segment ...
+LINK_NOISE = 0.004  # ... plus this share of their range
+MIN_SEGMENT = 60  # a segment (or what is left of it) of fewer points is not searched
+MIN_EXPLAINED = 40  # an instance explains at least this many of its segment's points
+MAX_TRIES = 4  # instances looked for in one segment, at most
+CLAIM_TOLERANCE = 1.5  # an instance claims the points within this many tolerances of it
+KEEP_SHARE = 0.5  # an instance left with less of its claim after the global check goes
+JOIN_PIXELS = 3  # segments where nothing was found are joined with those this near
+INSTANCE_FLOOR = 0.5  # an answer less confident than this is no instance of a part
