@@ -1,10 +1,9 @@
 """The whole-frame generator (evaluation.frames): real pybullet_data meshes dropped by pybullet's
-physics, ray cast by Open3D; a scene and a bin frame, shared by the module."""
+physics, ray cast by Open3D; the session's scene and bin frame (conftest.py)."""
 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,43 +11,13 @@ from scipy.spatial import ConvexHull
 
 from service.api.depth import depth_points
 from service.api.schemas import DepthCamera
-from service.engine.sampling import load_mesh, sample_surface
+from service.engine.sampling import sample_surface
 
 pytest.importorskip("pybullet")
 pytest.importorskip("open3d")
 frames = pytest.importorskip("evaluation.frames")
 
-PARTS = {  # name: (mesh in pybullet_data, how its units are guessed)
-    "mug": "objects/mug.obj",  # metres
-    "diff-ring": "differential/diff_ring.stl",  # millimetres
-    "random-000": "random_urdfs/000/000.obj",  # procedural, 2-6 units
-    "lego-brick": "lego/lego.obj",
-    "duck": "duck.obj",
-}
-FOREIGN = {"realsense-d435i": "quadruped/microtaur/d435i.stl"}
 TOUCH_M = 0.003  # resting: within the physics' contact margin of what holds it up
-
-
-def _parts(names: dict[str, str], registered: bool) -> list:
-    import pybullet_data
-
-    root = Path(pybullet_data.getDataPath())
-    return [frames.frame_part(n, load_mesh(root / p), registered) for n, p in names.items()]
-
-
-@pytest.fixture(scope="module")
-def parts():
-    return _parts(PARTS, True), _parts(FOREIGN, False)
-
-
-@pytest.fixture(scope="module")
-def scene(parts):
-    return frames.make_frame("scene", 3, 0, *parts)
-
-
-@pytest.fixture(scope="module")
-def bin_frame(parts):
-    return frames.make_frame("bin", 0, 0, *parts)
 
 
 def test_parts_are_rescaled_to_a_table_by_their_units(parts):
