@@ -1,5 +1,5 @@
-"""The evaluation of shared/EVALUATION.md: the engine, its ablations and the two baselines on the
-same cases, seen and unseen objects, written to a report.
+"""The evaluation of docs/evaluation-protocol.md: the engine, its ablations and the two
+baselines on the same cases, seen and unseen objects, written to a report.
 
     python -m evaluation --out docs/evaluation            # the full run (see below)
     python -m evaluation --quick --out /tmp/evaluation    # a few objects (~1.5 min)

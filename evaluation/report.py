@@ -483,7 +483,8 @@ def readme(
         " full clouds and sensor views. The baselines orient normals toward the camera where"
         " the case has one.",
         "",
-        f"Metrics as shared/EVALUATION.md: success = right label and ADD-S < {SUCCESS_ADD_S};"
+        "Metrics as docs/evaluation-protocol.md:"
+        f" success = right label and ADD-S < {SUCCESS_ADD_S};"
         f" precise = right label and ADD-S < {PRECISE_ADD_S}; ADD-S on {ADD_S_POINTS:,} points of"
         " the mesh (on the reference's 2,048 an answer that differs from the truth by a symmetry"
         " of the part scores 0.020-0.022, the sampling's floor, at the precise threshold; on"

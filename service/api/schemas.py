@@ -1,4 +1,4 @@
-"""Request and response bodies of the HTTP contract (shared/API.md), as pydantic models.
+"""Request and response bodies of the HTTP contract (docs/api.md), as pydantic models.
 
 They are the OpenAPI document a client generator reads. The routes validate the small fields
 with these models and the (possibly 200,000-long) point lists with ``service.api.validation``.

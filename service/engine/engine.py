@@ -43,14 +43,16 @@ from service.engine.mapping import Mapper
 from service.engine.normalize import has_extent, normalize, radius, subsample
 from service.engine.normals import estimate_normals, mesh_normals, orient_by_views
 from service.engine.principal_axes import flatness
+from service.engine.projection import DepthImage
 from service.engine.query import Observed, Query, Ranking, Stopwatch
 from service.engine.reference import Reference
 from service.engine.scene import Instance, frame_indices, near_surface, settle_claims
 from service.engine.search import Plan, Search, excellent, sure_first
 from service.engine.segments import adjacent, segments
-from service.engine.supports import apply_supports, set_aside_supports
+from service.engine.supports import Noise, apply_supports, set_aside_supports
 from service.engine.surroundings import Reading, as_is, set_aside_surroundings
 from service.engine.symmetry import find_symmetry
+from service.engine.templates import likeliest, place_views
 from service.engine.tuning import (
     ALIKE,
     CLAIM_TOLERANCE,
@@ -63,8 +65,11 @@ from service.engine.tuning import (
     MAX_TRIES,
     MIN_EXPLAINED,
     MIN_SEGMENT,
+    NOISE_TOLERANCES,
     POOR_FIT,
     RIGHT_EITHER_WAY,
+    TEMPLATE_PARTS,
+    TEMPLATE_SIZES,
     THIN_PER_SCALE,
     VIEW_POINTS,
     WHOLE_REFINED,
@@ -278,11 +283,14 @@ class Engine:
         viewpoint: np.ndarray | None = None,
         min_confidence: float | None = None,
         surroundings: bool = True,
+        noise: float = 0.0,
     ) -> Alignment:
         """Recognise and pose the object in ``points``; ``viewpoint`` is where the sensor was,
         in the cloud's frame, if known; below ``min_confidence`` the verdict is never "match".
-        Without ``surroundings``, nothing is set aside (a frame's segment)."""
+        Without ``surroundings``, nothing is set aside (a frame's segment); ``noise``: the
+        sensor's depth noise where the part lies, if known (``Query.tolerance``)."""
         query = self.query(candidates, top_k, refine, hypotheses, viewpoint)
+        query.noise = noise
         scene = np.asarray(points, dtype=np.float64)
         if surroundings:
             readings = self.set_aside(query, scene)  # 0
@@ -569,14 +577,18 @@ class Engine:
         clock.lap("thin")
         keep, supports = set_aside_supports(thin, angle, query.rng)
         rest = thin.take(keep)
+        camera = DepthImage.of(thin)
         clock.lap("supports")
         labels = segments(rest, angle)
         clock.lap("segments")
-        instances = self._instances(query, rest, labels, max_instances, min_confidence)
+        noise = Noise(supports[0] if supports else None)
+        instances = self._instances(
+            query, rest, labels, (camera, noise), max_instances, min_confidence
+        )
         clock.lap("instances")
         instances = settle_claims(instances, len(rest), KEEP_SHARE)
         clock.lap("global check")
-        return self._scene_answer(frame, supports, angle, instances, clock)
+        return self._scene_answer(frame, supports, angle, instances, noise, clock)
 
     def _frame_scales(self, query: Query, frame: Frame) -> np.ndarray:
         """The scales of the references a part in this frame could be: those no larger than
@@ -591,6 +603,7 @@ class Engine:
         query: Query,
         rest: Frame,
         labels: np.ndarray,
+        sensor: tuple[DepthImage | None, Noise],
         max_instances: int,
         min_confidence: float | None,
     ) -> list[Instance]:
@@ -601,7 +614,7 @@ class Engine:
         free = np.ones(len(rest), dtype=bool)
         instances: list[Instance] = []
         sizes = np.bincount(labels) if len(labels) else np.zeros(0, int)
-        search = lambda region: self._instance(query, rest, region, free, min_confidence)  # noqa: E731
+        search = lambda region: self._instance(query, rest, region, free, sensor, min_confidence)  # noqa: E731
         failed = []
         for segment in np.argsort(-sizes, kind="stable"):
             if sizes[segment] < MIN_SEGMENT:
@@ -626,22 +639,77 @@ class Engine:
                 free[found.claimed] = False
         return instances
 
-    def _instance(self, query, rest, region, free, min_confidence) -> Instance | None:
-        """The chain's answer for the points ``region`` of ``rest``, as an instance claiming
-        the free points near its surface; None if it is no registered part or explains too
-        little of the region."""
+    def _instance(self, query, rest, region, free, sensor, min_confidence) -> Instance | None:
+        """The chain's answer for the points ``region`` of ``rest`` as an instance claiming
+        the free points near its surface; else, the segment may hold several parts touching:
+        the likeliest parts' views placed over it (``templates``), and the chain asked about
+        the points the best placed view explains. None if neither explains enough.
+        ``sensor``: the frame's depth image (if it has one) and its noise."""
+        camera, noise = sensor
+        points = rest.points[region]
+        sigma = noise.at(points, rest.viewpoint)
+        answer = self._segment_answer(query, points, rest.viewpoint, min_confidence, sigma)
+        found = self._claim(query, rest, region, free, answer, sigma)
+        if found is not None:
+            return found
+        spacing = self._spacing(rest)
+        for entry in self._template_parts(query, points, rest.viewpoint, spacing, camera):
+            tolerance = query.tolerance(self.settings.tolerance, entry.reference.scale)
+            tolerance = max(tolerance, NOISE_TOLERANCES * sigma)
+            for pose in place_views(
+                entry, points, rest.viewpoint, spacing, tolerance, query.rng, camera
+            )[:1]:
+                close, _ = near_surface(
+                    points, entry, pose.rotation, pose.translation, CLAIM_TOLERANCE * tolerance
+                )
+                if len(close) < MIN_EXPLAINED:
+                    continue
+                again = self._segment_answer(
+                    query, points[close], rest.viewpoint, min_confidence, sigma
+                )
+                found = self._claim(query, rest, region, free, again, sigma)
+                if found is not None:
+                    return found
+        return None
+
+    def _segment_answer(self, query, points, viewpoint, min_confidence, noise) -> Alignment:
+        """The chain's answer for a segment's points, nothing set aside."""
         candidates = [query.snapshot.classifier.labels[row] for row in query.allowed]
-        answer = self.align(
-            rest.points[region],
+        return self.align(
+            points,
             candidates,
-            viewpoint=rest.viewpoint,
+            viewpoint=viewpoint,
             min_confidence=min_confidence,
             surroundings=False,
+            noise=noise,
         )
+
+    def _template_parts(self, query, points, viewpoint, spacing, camera) -> list[Entry]:
+        """The parts to place over a segment: of those that fit inside it and are not far
+        smaller (``TEMPLATE_SIZES``), the ``TEMPLATE_PARTS`` whose views fit it best."""
+        size = radius(points)
+        low, high = TEMPLATE_SIZES
+        rows = [r for r in query.allowed if low * size <= query.snapshot.scales[r] <= high * size]
+        labels = query.snapshot.classifier.labels
+        entries = [query.snapshot.entries[labels[r]] for r in rows]
+        return likeliest(entries, points, viewpoint, spacing, query.rng, camera, TEMPLATE_PARTS)
+
+    @staticmethod
+    def _spacing(frame: Frame) -> float:
+        """The distance between neighbouring points of a (thinned) frame at its median range."""
+        if not len(frame):
+            return 0.0
+        return frame.pixel_angle() * frame.step * float(np.median(frame.ranges()))
+
+    def _claim(self, query, rest, region, free, answer, noise) -> Instance | None:
+        """``answer`` as an instance claiming the free points near its surface; None if it is
+        no registered part, or explains fewer than ``MIN_EXPLAINED`` of ``region``."""
         if answer.verdict == "no_match" or (answer.confidence or 0.0) < INSTANCE_FLOOR:
             return None
         entry = query.snapshot.entries[answer.label]
-        tolerance = CLAIM_TOLERANCE * self.settings.tolerance * entry.reference.scale
+        tolerance = CLAIM_TOLERANCE * max(
+            self.settings.tolerance * entry.reference.scale, NOISE_TOLERANCES * noise
+        )
         available = np.flatnonzero(free)
         close, distance = near_surface(
             rest.points[available], entry, answer.rotation, answer.translation, tolerance
@@ -651,11 +719,18 @@ class Engine:
             return None
         return Instance(answer, entry, claimed, distance)
 
-    def _scene_answer(self, frame, supports, angle, instances, clock) -> SceneAnswer:
+    def _scene_answer(self, frame, supports, angle, instances, noise, clock) -> SceneAnswer:
         """The detections at the frame's full resolution, best first."""
         seen = apply_supports(frame, supports, angle)
         kept = frame.take(seen)
-        tolerance = lambda entry: CLAIM_TOLERANCE * self.settings.tolerance * entry.reference.scale  # noqa: E731
+        sigma = {id(i): noise.at(i.centre[None], frame.viewpoint) for i in instances}
+
+        def tolerance(instance: Instance) -> float:
+            scale = instance.entry.reference.scale
+            return CLAIM_TOLERANCE * max(
+                self.settings.tolerance * scale, NOISE_TOLERANCES * sigma[id(instance)]
+            )
+
         owned = frame_indices(kept, instances, tolerance)
         detections = [
             Detection(i.answer, kept.index[mine], i.entry.symmetry.describe())

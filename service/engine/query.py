@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.engine.entry import Snapshot
+from service.engine.tuning import NOISE_TOLERANCES
 
 
 class Stopwatch:
@@ -40,6 +41,13 @@ class Query:
     viewpoint: np.ndarray | None
     rng: np.random.Generator
     clock: Stopwatch
+    noise: float = 0.0  # the sensor's depth noise (sigma) where the part lies, if known
+
+    def tolerance(self, fraction: float, scale: float) -> float:
+        """A distance tolerance of ``fraction`` of a part's ``scale``, but never under
+        ``NOISE_TOLERANCES`` times the sensor's noise: a small part far from the camera is
+        measured no finer than the sensor measures (docs/decisions.md#detect)."""
+        return max(fraction * scale, NOISE_TOLERANCES * self.noise)
 
 
 @dataclass

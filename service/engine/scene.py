@@ -85,12 +85,13 @@ def settle_claims(instances: list[Instance], count: int, keep_share: float) -> l
 
 def frame_indices(frame: Frame, instances: list[Instance], tolerance_of) -> list[np.ndarray]:
     """Each instance's points at the frame's full resolution (indices into ``frame``), every
-    point going to the instance whose surface is nearest it."""
+    point going to the instance whose surface is nearest it; ``tolerance_of(instance)``: how
+    near its surface a point must lie."""
     owner = np.full(len(frame), -1)
     best = np.full(len(frame), np.inf)
     for k, instance in enumerate(instances):
         answer = instance.answer
-        tolerance = tolerance_of(instance.entry)
+        tolerance = tolerance_of(instance)
         close, distance = near_surface(
             frame.points, instance.entry, answer.rotation, answer.translation, tolerance
         )

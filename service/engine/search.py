@@ -98,17 +98,22 @@ class Search:
         self.viewpoint = query.viewpoint
         self.rng = rng = query.rng
         self.clock = query.clock
+        self.query = query
         self.frame = Frame.of(points)  # what every principal-axes and view hypothesis uses
         self.quick = points[subsample(points, QUICK_POINTS, rng)]
         self.cheap = points[subsample(points, settings.verify_points, rng)]
         self.refine_on = points[subsample(points, settings.icp_points, rng)]
         # "is an observed point near here", at the tolerance or the observation's own spacing
         self.occupancy = Occupancy.around(
-            points, settings.tolerance * radius(points), observed.spacing
+            points, query.tolerance(settings.tolerance, radius(points)), observed.spacing
         )
 
     def entry(self, row: int) -> Entry:
         return self.snapshot.entries[self.labels[row]]
+
+    def tolerance(self, entry: Entry) -> float:
+        """The fit and coverage distance for this part (``Query.tolerance``)."""
+        return self.query.tolerance(self.settings.tolerance, entry.reference.scale)
 
     # --- one pass -------------------------------------------------------------------------
 
@@ -153,7 +158,7 @@ class Search:
 
     def screen(self, entry: Entry, made: Hypotheses) -> np.ndarray:
         """Hypotheses ordered by a quick fit x coverage on a few points, best first."""
-        tolerance = self.settings.tolerance * entry.reference.scale
+        tolerance = self.tolerance(entry)
         fits_ = fit(
             entry.surface,
             self.quick,
@@ -264,8 +269,7 @@ class Search:
         sample, or (``count``, a refined pose, whose fit the confidence weighs) on the
         refinement's sample to the facing sample (docs/decisions.md#verify)."""
         settings = self.settings
-        scale = entry.reference.scale
-        tolerance = settings.tolerance * scale
+        tolerance = self.tolerance(entry)
         observed = self.cheap if count is None else self.refine_on
         fits_ = fit(
             entry.surface,
@@ -320,16 +324,14 @@ class Search:
     ) -> tuple[np.ndarray, np.ndarray]:
         """The fit's pose refined by point-to-plane ICP on ``points`` (the refinement's sample
         unless given); ``candidate.settled`` says whether it stopped before ``iterations``."""
-        settings = self.settings
         entry = self.entry(candidate.row)
-        scale = entry.reference.scale
         rotation, translation, done = icp(
             self.refine_on if points is None else points,
             entry.surface,
             candidate.rotation,
             candidate.translation,
-            noise=0.25 * settings.tolerance * scale,
-            gate=5 * settings.tolerance * scale,
+            noise=0.25 * self.tolerance(entry),
+            gate=5 * self.tolerance(entry),
             iterations=iterations,
             viewpoint=self.camera_of(entry, candidate),
         )
@@ -486,7 +488,7 @@ class Search:
         points = self.refine_on if points is None else points
         model = np.matmul(points[None] - translations[:, None], rotations)
         distance, _ = surface_distance(entry.surface, model, lookup)
-        return np.minimum(distance, 3 * self.settings.tolerance * scale).mean(axis=1) / scale
+        return np.minimum(distance, 3 * self.tolerance(entry)).mean(axis=1) / scale
 
     def candidate_fits(self, fits: list[Fit], scores: np.ndarray) -> list[CandidateFit]:
         """One line a candidate, best first: its best pose's mean distance from the observed

@@ -13,7 +13,7 @@ from scipy.sparse.csgraph import connected_components
 
 from service.engine.frame import Frame
 from service.engine.surroundings import groups
-from service.engine.tuning import LINK_FOOTPRINTS, LINK_NOISE
+from service.engine.tuning import LINK_FOOTPRINTS, LINK_NOISE, NORMAL_PIXELS, SMOOTH_DEG
 
 # neighbouring pixels linked: right, down, the diagonals, and two along (across a missing one)
 OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1), (0, 2), (2, 0))
@@ -36,6 +36,15 @@ def grid_segments(frame: Frame, angle: float, ranges: np.ndarray) -> np.ndarray:
     """Connected components of the organized frame's pixels, a pixel linked to each of its
     ``OFFSETS`` neighbours closer than ``LINK_FOOTPRINTS`` of its own footprint (per pixel
     of offset) plus ``LINK_NOISE`` of its range."""
+    first, second, _ = grid_links(frame, angle, ranges)
+    return components(len(frame), first, second)
+
+
+def grid_links(
+    frame: Frame, angle: float, ranges: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The linked pairs of neighbouring pixels (``grid_segments``), as two index arrays into
+    the frame's points, and each pair's offset length in pixels."""
     height, width = frame.shape
     step = frame.step
     rows, columns = frame.rows // step, frame.columns // step
@@ -43,7 +52,7 @@ def grid_segments(frame: Frame, angle: float, ranges: np.ndarray) -> np.ndarray:
     where = np.full(grid_height * grid_width, -1, dtype=np.intp)
     where[rows * grid_width + columns] = np.arange(len(frame))
     footprint = angle * step * ranges
-    firsts, seconds = [], []
+    firsts, seconds, lengths = [], [], []
     for down, right in OFFSETS:
         row, column = rows + down, columns + right
         inside = (row < grid_height) & (column >= 0) & (column < grid_width)
@@ -55,10 +64,64 @@ def grid_segments(frame: Frame, angle: float, ranges: np.ndarray) -> np.ndarray:
         linked = gap < reach + LINK_NOISE * ranges[mine]
         firsts.append(mine[linked])
         seconds.append(other[linked])
-    first, second = np.concatenate(firsts), np.concatenate(seconds)
-    graph = coo_matrix((np.ones(len(first)), (first, second)), shape=(len(frame), len(frame)))
+        lengths.append(np.full(int(linked.sum()), np.hypot(down, right)))
+    return np.concatenate(firsts), np.concatenate(seconds), np.concatenate(lengths)
+
+
+def components(count: int, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """(count,) a component label per node of the graph of edges ``first``-``second``."""
+    graph = coo_matrix((np.ones(len(first)), (first, second)), shape=(count, count))
     _, labels = connected_components(graph.tocsr(), directed=False)
     return labels
+
+
+def patches(frame: Frame, angle: float) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) a segment label and (N,) a patch label per point of an organized frame: a patch
+    is a part of a segment that no concave crease crosses (neighbouring pixels whose normals
+    turn towards each other by more than ``SMOOTH_DEG``): where two parts touch, or one
+    rests on another, the surface folds inwards. The pixels along a crease are cut out, the
+    rest split into components, and each crease pixel given to a neighbouring patch."""
+    ranges = frame.ranges()
+    first, second, _ = grid_links(frame, angle, ranges)
+    labels = components(len(frame), first, second)
+    normals = grid_normals(frame)
+    offset = frame.points[first] - frame.points[second]
+    turned = np.einsum("ij,ij->i", normals[first] - normals[second], offset)
+    cosine = np.einsum("ij,ij->i", normals[first], normals[second])
+    crease = np.isfinite(cosine) & (cosine < np.cos(np.radians(SMOOTH_DEG))) & (turned < 0)
+    on_crease = np.zeros(len(frame), dtype=bool)
+    on_crease[first[crease]] = on_crease[second[crease]] = True
+    clear = ~on_crease[first] & ~on_crease[second]
+    parts = components(len(frame), first[clear], second[clear])
+    for _ in range(2 * NORMAL_PIXELS):  # crease pixels join a neighbouring patch
+        lost = on_crease[first] & ~on_crease[second]
+        parts[first[lost]] = parts[second[lost]]
+        found = np.zeros(len(frame), dtype=bool)
+        found[first[lost]] = True
+        lost = on_crease[second] & ~on_crease[first]
+        parts[second[lost]] = parts[first[lost]]
+        found[second[lost]] = True
+        on_crease &= ~found
+    return labels, parts
+
+
+def grid_normals(frame: Frame) -> np.ndarray:
+    """(N, 3) each pixel's surface normal, towards the camera, from its neighbours
+    ``NORMAL_PIXELS`` away across and down the grid; NaN where one of them is missing."""
+    height, width = frame.shape
+    step, reach = frame.step, NORMAL_PIXELS
+    grid_height, grid_width = (height + step - 1) // step, (width + step - 1) // step
+    image = np.full((grid_height + 2 * reach, grid_width + 2 * reach, 3), np.nan)
+    rows, columns = frame.rows // step + reach, frame.columns // step + reach
+    image[rows, columns] = frame.points
+    across = image[rows, columns + reach] - image[rows, columns - reach]
+    down = image[rows + reach, columns] - image[rows - reach, columns]
+    normals = np.cross(across, down)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        normals = normals / length
+    towards = np.einsum("ij,ij->i", normals, frame.viewpoint - frame.points)
+    return normals * np.where(towards < 0, -1.0, 1.0)[:, None]
 
 
 def adjacent(frame: Frame, labels: np.ndarray, chosen: np.ndarray, reach: int) -> set[tuple]:

@@ -20,6 +20,7 @@ from service.engine.tuning import (
     BEHIND_SHARE,
     MAX_SUPPORTS,
     PLANE_ITERATIONS,
+    SENSOR_NOISE,
     SUPPORT_CELLS,
     SUPPORT_NOISE,
     SUPPORT_SAMPLE,
@@ -32,6 +33,12 @@ from service.engine.tuning import (
 class Support:
     plane: np.ndarray  # (4,) n . x = d, the normal towards the camera
     points: int  # the frame's points on it
+    noise: float  # the robust spread of their distances to it (the sensor's depth noise) ...
+    at_range: float  # ... at this median range from the camera
+
+    def noise_at(self, distance: float) -> float:
+        """The sensor's noise at ``distance`` from the camera, growing with the range."""
+        return self.noise * distance / max(self.at_range, 1e-12)
 
 
 def tolerances(frame: Frame, angle: float) -> np.ndarray:
@@ -66,7 +73,11 @@ def set_aside_supports(
         keep[rest[on]] = False
         if not supports:  # what lies beyond the surface the parts rest on
             keep &= frame.points @ plane[:3] - plane[3] > -tolerance
-        supports.append(Support(plane, len(on)))
+        on_plane = frame.points[rest[on]]
+        residual = on_plane @ plane[:3] - plane[3]
+        spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
+        ranges = np.linalg.norm(on_plane - frame.viewpoint, axis=1)
+        supports.append(Support(plane, len(on), spread, float(np.median(ranges))))
     return keep, supports
 
 
@@ -138,3 +149,17 @@ def apply_supports(frame: Frame, supports: list[Support], angle: float) -> np.nd
         if k == 0:
             keep &= height > -tolerance
     return keep
+
+
+@dataclass(frozen=True)
+class Noise:
+    """The sensor's depth noise where points lie: measured on the support the parts rest on,
+    grown with the range; without one, ``SENSOR_NOISE`` of the range."""
+
+    support: Support | None
+
+    def at(self, points: np.ndarray, viewpoint: np.ndarray) -> float:
+        distance = float(np.median(np.linalg.norm(points - viewpoint, axis=1)))
+        if self.support is None:
+            return SENSOR_NOISE * distance
+        return self.support.noise_at(distance)

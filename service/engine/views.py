@@ -7,7 +7,7 @@ centroid, principal frame and radius, and the classifier's features of their gri
 learns a part's views rather than only its full shape).
 
 The camera of a view sits ``CAMERA_DISTANCE`` scales from the centroid, in the middle of a
-cell camera's working range (4 to 8 scales, shared/EVALUATION.md). Which points it sees:
+cell camera's working range (4 to 8 scales, docs/evaluation-protocol.md). Which points it sees:
 - for an uploaded mesh, a depth buffer of a dense sample of its surface (each pixel keeps its
   nearest surface sample; a reference point is seen if it is no deeper than that sample, plus a
   tolerance): a point-based rendering of the mesh itself;
