@@ -32,6 +32,7 @@ from service.engine.tuning import (
     TEMPLATE_POINTS,
     TEMPLATE_REFINED,
     TEMPLATE_TOLERANCE,
+    THROUGH_WEIGHT,
 )
 from service.engine.verification import Occupancy
 from service.engine.views import camera_basis
@@ -197,5 +198,6 @@ def refined(
     view = int(entry.views.nearest(toward[None])[0])
     expected = entry.surface.points[entry.expected[view]] @ rotation.T + translation
     if camera is not None:
-        return Placed(rotation, translation, float(camera.agreement(expected, tolerance)[0]))
+        score = camera.agreement(expected, tolerance, THROUGH_WEIGHT)[0]
+        return Placed(rotation, translation, float(score))
     return Placed(rotation, translation, float(fine.near(expected).mean()))
