@@ -226,7 +226,7 @@ class Scan:
                 found.append(instance)
                 self.free[instance.claimed] = False
         for a, b in sorted(adjacent(self.frame, labels, np.array(failed), JOIN_PIXELS)):
-            region = np.flatnonzero(np.isin(labels, (a, b)) & self.free)
+            region = np.flatnonzero(((labels == a) | (labels == b)) & self.free)
             if len(region) < MIN_SEGMENT or len(found) >= most:
                 continue
             instance = self.instance(region)
@@ -324,7 +324,9 @@ class Scan:
             self.frame.points[available], entry, answer.rotation, answer.translation, tolerance
         )
         claimed = available[close]
-        inside = int(np.isin(claimed, region).sum())
+        in_region = np.zeros(len(self.frame), dtype=bool)
+        in_region[region] = True
+        inside = int(in_region[claimed].sum())
         if inside < MIN_EXPLAINED:
             return None
         instance = Instance(answer, entry, claimed, distance)

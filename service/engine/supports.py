@@ -75,7 +75,9 @@ def set_aside_supports(
             break
         plane, on = found
         plane = plane * (1.0 if plane[:3] @ frame.viewpoint >= plane[3] else -1.0)
-        off = np.setdiff1d(np.flatnonzero(keep), rest[on])
+        others = keep.copy()
+        others[rest[on]] = False
+        off = np.flatnonzero(others)
         on_plane = frame.points[rest[on]]
         wide = reach(on_plane, plane) >= largest
         wall = (
