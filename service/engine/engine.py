@@ -585,6 +585,7 @@ class Engine:
             Noise(supports[0] if supports else None),
             INSTANCE_FLOOR if floor is None else floor,
             min_confidence,
+            (float(scales.min()), float(scales.max())),
         )
         instances = scan.instances(labels, max_instances)  # explain, take out, search again
         clock.lap("instances")

@@ -35,15 +35,20 @@ from service.engine.templates import likeliest, place_views
 from service.engine.tuning import (
     CLAIM_TOLERANCE,
     DUPLICATE_GAP,
+    FRAGMENT,
     JOIN_PIXELS,
+    JOIN_SCALES,
+    MAX_JOINS,
     MAX_TRIES,
     MIN_EXPLAINED,
     MIN_SEGMENT,
     NOISE_TOLERANCES,
     SEGMENT_POINTS,
+    TEMPLATE_FIT,
     TEMPLATE_PARTS,
     TEMPLATE_SIZES,
     THROUGH_DOUBT,
+    WIDER,
 )
 from service.engine.verification import surface_distance
 
@@ -200,6 +205,7 @@ class Scan:
     noise: Noise
     floor: float  # an instance is at least this confident
     min_confidence: float | None
+    sizes: tuple[float, float]  # the smallest and largest scale a part here may have
     free: np.ndarray = field(init=False)  # which points no instance has claimed yet
 
     def __post_init__(self):
@@ -217,7 +223,7 @@ class Scan:
                 break
             for tries in range(MAX_TRIES):
                 region = np.flatnonzero((labels == segment) & self.free)
-                if len(region) < MIN_SEGMENT or len(found) >= most:
+                if not self.worth_searching(region) or len(found) >= most:
                     break
                 instance = self.instance(region)
                 if instance is None:
@@ -225,15 +231,27 @@ class Scan:
                     break
                 found.append(instance)
                 self.free[instance.claimed] = False
+        joins = 0
         for a, b in sorted(adjacent(self.frame, labels, np.array(failed), JOIN_PIXELS)):
             region = np.flatnonzero(((labels == a) | (labels == b)) & self.free)
-            if len(region) < MIN_SEGMENT or len(found) >= most:
+            if len(found) >= most or joins == MAX_JOINS:
+                break
+            too_big = radius(self.frame.points[region]) > JOIN_SCALES * self.sizes[1]
+            if too_big or not self.worth_searching(region):
                 continue
+            joins += 1
             instance = self.instance(region)
             if instance is not None:
                 found.append(instance)
                 self.free[instance.claimed] = False
         return found
+
+    def worth_searching(self, region: np.ndarray) -> bool:
+        """Whether a region holds enough points, spread wide enough, to be a part: at least
+        ``MIN_SEGMENT``, and a radius of ``FRAGMENT`` of the smallest part's scale."""
+        if len(region) < MIN_SEGMENT:
+            return False
+        return radius(self.frame.points[region]) >= FRAGMENT * self.sizes[0]
 
     def instance(self, region: np.ndarray) -> Instance | None:
         """The chain's answer for the points ``region`` as an instance claiming the free
@@ -241,9 +259,12 @@ class Scan:
         the chain asked about the points the best explains. None if neither explains enough."""
         points = self.frame.points[region]
         sigma = self.noise.at(points, self.frame.viewpoint)
-        found = self.claim(region, self.answer_for(points, sigma), sigma)
+        answer = self.answer_for(points, sigma)
+        found = self.claim(region, answer, sigma)
         if found is not None:
             return found
+        if not self.may_hold_several(points, answer):
+            return None
         spacing = self.spacing()
         for entry in self.template_parts(points, spacing):
             tolerance = self.part_tolerance(entry, sigma)
@@ -267,6 +288,14 @@ class Scan:
             if found is not None:
                 return found
         return None
+
+    def may_hold_several(self, points: np.ndarray, answer: Alignment) -> bool:
+        """Whether a region the chain found nothing in may hold several parts: the chain's
+        best part explains little of it (``TEMPLATE_FIT``), or it is wider than that part."""
+        if answer.hypothesis == "none":  # no part of its size
+            return radius(points) > self.sizes[1]
+        scale = self.query.snapshot.entries[answer.label].reference.scale
+        return answer.fit < TEMPLATE_FIT or radius(points) > WIDER * scale
 
     def answer_for(self, points: np.ndarray, sigma: float) -> Alignment:
         """The chain's answer for a segment's points (``SEGMENT_POINTS`` of them at most),
