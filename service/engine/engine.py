@@ -53,6 +53,7 @@ from service.engine.supports import Noise, apply_supports, set_aside_supports
 from service.engine.surroundings import Reading, as_is, set_aside_surroundings
 from service.engine.symmetry import find_symmetry
 from service.engine.tuning import (
+    ALIGN_POINTS,
     ALIKE,
     DIFFERENT_DEG,
     FLAT,
@@ -285,6 +286,9 @@ class Engine:
         query = self.query(candidates, top_k, refine, hypotheses, viewpoint)
         query.noise = noise
         scene = np.asarray(points, dtype=np.float64)
+        whole = len(scene)
+        if whole > ALIGN_POINTS:  # a random sample answers as the whole cloud would
+            scene = scene[subsample(scene, ALIGN_POINTS, np.random.default_rng(self.settings.seed))]
         if surroundings:
             readings = self.set_aside(query, scene)  # 0
         else:
@@ -294,7 +298,7 @@ class Engine:
             if answer is not None and answer.fit * answer.coverage >= self.settings.excellent:
                 break
             found = self.align_reading(query, reading)  # 1-8
-            found.points_set_aside = reading.set_aside
+            found.points_set_aside = round(reading.set_aside * whole / len(scene))
             if answer is None or found.fit * found.coverage > answer.fit * answer.coverage:
                 answer, seen = found, reading.points
         if answer.verdict != "no_match":  # 8. How far to trust it.

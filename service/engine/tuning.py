@@ -4,6 +4,8 @@ figures that chose it: docs/decisions.md, under the step's heading."""
 
 from __future__ import annotations
 
+ALIGN_POINTS = 65536  # a cloud of more points is answered from a random sample of this many
+
 # --- 0. Surroundings: the support plane and stray points (docs/decisions.md#surroundings) ---------
 SURROUNDINGS_SAMPLE = 1024  # decisions are made on a sample of this many points
 PLANE_SHARE = 0.2  # a support plane holds at least this share of the points ...
@@ -94,7 +96,7 @@ MAX_TRIES = 4  # instances looked for in one segment, at most
 CLAIM_TOLERANCE = 1.5  # an instance claims the points within this many tolerances of it
 KEEP_SHARE = 0.5  # an instance left with less of its claim after the global check goes
 JOIN_PIXELS = 3  # segments where nothing was found are joined with those this near
-INSTANCE_FLOOR = 0.5  # an answer less confident than this is no instance of a part
+INSTANCE_FLOOR = 0.3  # an instance less confident than this is not listed (uncertain above it)
 NORMAL_PIXELS = 2  # a pixel's normal from its neighbours this many pixels away
 SMOOTH_DEG = 25.0  # neighbours whose normals turn towards each other by more: a crease
 SEED_SPACING = 0.35  # a part's views are placed at seeds this many scales apart ...
