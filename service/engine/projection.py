@@ -71,11 +71,11 @@ class DepthImage:
         self, points: np.ndarray, tolerance: float, through_weight: float = 1.0
     ) -> tuple[np.ndarray, np.ndarray]:
         """For sets of points (..., P, 3) the camera should see: each set moved along z by the
-        median difference between the frame's depth and its own (its depth snapped onto the
-        frame), then its share of points within ``tolerance`` of the frame's depth, weighed by
-        how close (1 on it, 0 at the tolerance), less the share the camera saw through; of the
-        points not hidden by something nearer (``through_weight`` times that share). The scores
-        (...), and the depth shifts (...)."""
+        mean difference (within three tolerances) between the frame's depth and its own (its
+        depth snapped onto the frame), then its share of points within ``tolerance`` of the
+        frame's depth, weighed by how close (1 on it, 0 at the tolerance), less the share the
+        camera saw through (``through_weight`` times that share); of the points not hidden by
+        something nearer. The scores (...), and the depth shifts (...)."""
         z = points[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             column = np.rint(points[..., 0] / z * self.focal[0] + self.centre[0])
@@ -85,10 +85,10 @@ class DepthImage:
         observed = np.full(z.shape, np.nan)
         observed[inside] = self.depth[row[inside].astype(np.intp), column[inside].astype(np.intp)]
         difference = observed - z
-        near = np.abs(difference) <= 3 * tolerance
-        with np.errstate(invalid="ignore"):
-            shift = np.nanmedian(np.where(near, difference, np.nan), axis=-1)
-        shift = np.nan_to_num(shift)
+        near = np.abs(difference) <= 3 * tolerance  # NaN: False
+        count = near.sum(axis=-1)
+        total = np.where(near, difference, 0.0).sum(axis=-1)
+        shift = np.where(count > 0, total / np.maximum(count, 1), 0.0)
         residual = difference - shift[..., None]
         with np.errstate(invalid="ignore"):
             weight = np.nan_to_num(np.clip(1 - np.abs(residual) / tolerance, 0, 1))

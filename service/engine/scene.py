@@ -22,10 +22,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from service.engine.alignment import alignment_error
 from service.engine.answer import Alignment, Detection, SceneAnswer
 from service.engine.confidence import Calibration
 from service.engine.entry import Entry
 from service.engine.frame import Frame
+from service.engine.icp import icp
 from service.engine.normalize import radius, subsample
 from service.engine.projection import DepthImage
 from service.engine.query import Query, Stopwatch
@@ -35,6 +37,8 @@ from service.engine.templates import likeliest, place_views
 from service.engine.tuning import (
     CLAIM_TOLERANCE,
     DUPLICATE_GAP,
+    FINISH_ITERATIONS,
+    FINISH_POINTS,
     FRAGMENT,
     JOIN_PIXELS,
     JOIN_SCALES,
@@ -46,6 +50,7 @@ from service.engine.tuning import (
     SEGMENT_POINTS,
     TEMPLATE_FIT,
     TEMPLATE_PARTS,
+    TEMPLATE_POOL,
     TEMPLATE_SIZES,
     THROUGH_DOUBT,
     WIDER,
@@ -266,7 +271,7 @@ class Scan:
         if not self.may_hold_several(points, answer):
             return None
         spacing = self.spacing()
-        for entry in self.template_parts(points, spacing):
+        for entry in self.template_parts(points, spacing, answer):
             tolerance = self.part_tolerance(entry, sigma)
             poses = place_views(
                 entry,
@@ -310,14 +315,19 @@ class Scan:
             noise=sigma,
         )
 
-    def template_parts(self, points: np.ndarray, spacing: float) -> list[Entry]:
+    def template_parts(self, points: np.ndarray, spacing: float, answer: Alignment) -> list[Entry]:
         """The parts to place over a segment: of those that fit inside it and are not far
-        smaller (``TEMPLATE_SIZES``), the ``TEMPLATE_PARTS`` whose views fit it best."""
+        smaller (``TEMPLATE_SIZES``), the chain's candidates for it (every allowed part,
+        where few are), the ``TEMPLATE_PARTS`` whose views fit it best."""
         size = radius(points)
         low, high = TEMPLATE_SIZES
         snapshot = self.query.snapshot
+        labels = snapshot.classifier.labels
         rows = [r for r in self.query.allowed if low * size <= snapshot.scales[r] <= high * size]
-        entries = [snapshot.entries[snapshot.classifier.labels[r]] for r in rows]
+        if len(rows) > TEMPLATE_POOL:
+            named = {c.label for c in answer.candidates} | {answer.label}
+            rows = [r for r in rows if labels[r] in named]
+        entries = [snapshot.entries[labels[r]] for r in rows]
         return likeliest(
             entries,
             points,
@@ -355,6 +365,14 @@ class Scan:
         claimed = available[close]
         in_region = np.zeros(len(self.frame), dtype=bool)
         in_region[region] = True
+        if in_region[claimed].sum() < MIN_EXPLAINED:
+            return None
+        # the pose finished on every point it claims: the chain saw a sample of a region
+        self.finish(answer, entry, self.frame.points[claimed], tolerance / CLAIM_TOLERANCE)
+        close, distance = near_surface(
+            self.frame.points[available], entry, answer.rotation, answer.translation, tolerance
+        )
+        claimed = available[close]
         inside = int(in_region[claimed].sum())
         if inside < MIN_EXPLAINED:
             return None
@@ -366,6 +384,26 @@ class Scan:
         if (instance.answer.confidence or 0.0) < self.floor:
             return None
         return instance
+
+    def finish(self, answer: Alignment, entry: Entry, points: np.ndarray, tolerance: float):
+        """``answer``'s pose refined by ICP on (a sample of) the points it claims, told where
+        the camera was, and its canonical pose among those its symmetry makes equivalent; its
+        alignment error measured on them."""
+        sample = points[subsample(points, FINISH_POINTS, self.query.rng)]
+        rotation, translation, _ = icp(
+            sample,
+            entry.surface,
+            answer.rotation,
+            answer.translation,
+            noise=0.25 * tolerance,
+            gate=5 * tolerance,
+            iterations=FINISH_ITERATIONS,
+            viewpoint=self.frame.viewpoint,
+        )
+        answer.rotation, answer.translation = entry.symmetry.canonical(rotation, translation)
+        error = alignment_error(sample, entry.point_tree, answer.rotation, answer.translation)
+        answer.alignment_error = error
+        answer.alignment_error_normalized = error / entry.reference.scale
 
     def judge(self, instance: Instance) -> None:
         """The instance's confidence from the scene calibration, where one is fitted, its
