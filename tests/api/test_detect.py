@@ -97,6 +97,21 @@ def test_three_ducks_in_a_bin_one_lying_on_another_are_three(server, meshes):
     assert_disjoint(body)
 
 
+def test_metrics_count_the_detections_by_verdict(server, meshes):
+    def counted() -> float:
+        text = server.client.get("/metrics").text
+        lines = [line for line in text.splitlines() if line.startswith("dpc_detections_total")]
+        matched = [line for line in lines if 'verdict="match"' in line]
+        return float(matched[0].split()[-1]) if matched else 0.0
+
+    before = counted()
+    a = resting(meshes["box-a"], spin(10), -0.12, 0.0)
+    body = detect(server, shoot([(meshes["box-a"], *a)], table()))
+    matches = sum(d["verdict"] == "match" for d in body["detections"])
+    assert matches == 1
+    assert counted() == before + matches
+
+
 def test_an_empty_table_gives_no_detection(server):
     shot = shoot([], table())
     body = detect(server, shot)
