@@ -99,9 +99,9 @@ def collect(engine: Engine, cases: list[Case], desc: str) -> list[dict]:
     return rows
 
 
-def fit_calibration(rows: list[dict]) -> Calibration:
+def fit_calibration(rows: list[dict], features: tuple[str, ...] = FEATURES) -> Calibration:
     """Logistic regression of rightness on the standardised measures, with a little ridge."""
-    x = np.array([[row[name] for name in FEATURES] for row in rows])
+    x = np.array([[row[name] for name in features] for row in rows])
     y = np.array([row["right"] for row in rows], dtype=np.float64)
     mean, spread = x.mean(axis=0), np.maximum(x.std(axis=0), 1e-9)
     z = (x - mean) / spread
@@ -116,13 +116,15 @@ def fit_calibration(rows: list[dict]) -> Calibration:
 
     # more fit, coverage or margin never lowers the confidence; a closer other pose never
     # raises it: the signs are constrained, so the answer's meaning cannot invert
-    signs = {"fit": 1, "coverage": 1, "margin": 1, "alike": -1}
+    signs = {"fit": 1, "coverage": 1, "margin": 1, "alike": -1, "chain": 1, "seen": 1,
+             "through": -1, "explained": 1}  # fmt: skip
     bounds = [
         (0, None) if signs.get(n) == 1 else (None, 0) if signs.get(n) == -1 else (None, None)
-        for n in FEATURES
+        for n in features
     ] + [(None, None)]
-    solved = minimize(loss, np.zeros(len(FEATURES) + 1), jac=True, method="L-BFGS-B", bounds=bounds)
-    return Calibration(FEATURES, solved.x[:-1], float(solved.x[-1]), mean, spread, {})
+    start = np.zeros(len(features) + 1)
+    solved = minimize(loss, start, jac=True, method="L-BFGS-B", bounds=bounds)
+    return Calibration(features, solved.x[:-1], float(solved.x[-1]), mean, spread, {})
 
 
 def judge(calibration: Calibration, rows: list[dict], accept: float) -> dict:

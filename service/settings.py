@@ -22,6 +22,8 @@ class ModelSettings(BaseModel):
     manifest: Path | None = None  # default: manifest.json beside the model file
     gallery: Path = MODELS_DIR / "gallery.npz"  # seeds the database on first start
     confidence: Path | None = None  # default: confidence.json beside the model file
+    # POST /detect's detections; default: detect_confidence.json beside the model file
+    detect_confidence: Path | None = None
     intra_op_threads: int = Field(2, ge=1)
     inter_op_threads: int = Field(1, ge=1)
     # threads of numpy's and scipy's BLAS (OpenBLAS) in the process: its idle workers spin
@@ -163,6 +165,12 @@ class Settings(BaseSettings):
         """The confidence calibration: ``model.confidence``, else ``confidence.json`` beside
         the model."""
         return self.model.confidence or self.model.path.parent / "confidence.json"
+
+    @property
+    def detect_confidence_path(self) -> Path:
+        """The detections' calibration: ``model.detect_confidence``, else
+        ``detect_confidence.json`` beside the model."""
+        return self.model.detect_confidence or self.model.path.parent / "detect_confidence.json"
 
     @property
     def manifest_path(self) -> Path:

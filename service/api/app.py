@@ -136,7 +136,12 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         ", ".join(mapper.providers),
     )
     _log_auth(settings)
-    engine = Engine(mapper, settings.engine, startup.load_calibration(settings))
+    engine = Engine(
+        mapper,
+        settings.engine,
+        startup.load_calibration(settings),
+        startup.load_calibration(settings, detections=True),
+    )
     catalog = Catalog(engine, store, settings.gallery.max_references)
     app.state.catalog = catalog
     limits = settings.limits

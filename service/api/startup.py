@@ -187,12 +187,16 @@ def quiet_onnxruntime() -> None:
     ort.set_default_logger_severity(3)
 
 
-def load_calibration(settings: Settings) -> Calibration | None:
-    """The confidence calibration beside the model, None when there is none (every answer is
-    then "uncertain", and the log says why); a file that cannot be read stops the start."""
-    path = settings.confidence_path
+def load_calibration(settings: Settings, detections: bool = False) -> Calibration | None:
+    """The confidence calibration beside the model (with ``detections``: POST /detect's), None
+    when there is none (every answer is then "uncertain", every detection takes the chain's
+    confidence, and the log says why); a file that cannot be read stops the start."""
+    path = settings.detect_confidence_path if detections else settings.confidence_path
     if not path.exists():
-        log.warning("no confidence calibration at %s: every answer will be 'uncertain'", path)
+        if detections:
+            log.warning("no detection calibration at %s: detections take the chain's", path)
+        else:
+            log.warning("no confidence calibration at %s: every answer will be 'uncertain'", path)
         return None
     try:
         return Calibration.load(path)
@@ -200,4 +204,5 @@ def load_calibration(settings: Settings) -> Calibration | None:
         raise StartupError(
             f"the confidence calibration {path} is unreadable ({error}): restore it from the "
             "model's release, or refit it with python -m evaluation.calibrate"
+            + ("_detect" if detections else "")
         ) from None

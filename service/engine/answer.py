@@ -63,6 +63,7 @@ class Detection:
     answer: Alignment
     indices: np.ndarray  # (M,) int
     symmetry: dict
+    evidence: dict[str, float] = field(default_factory=dict)  # what the frame says of it
 
 
 @dataclass

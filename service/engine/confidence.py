@@ -31,6 +31,9 @@ from pathlib import Path
 import numpy as np
 
 FEATURES = ("fit", "coverage", "margin", "alike", "points", "size")
+# a detection in a whole frame (``Engine.detect``): the chain's confidence for its points, and
+# what the frame says of its pose (``scene.evidence``)
+SCENE_FEATURES = ("chain", "fit", "coverage", "margin", "seen", "through", "explained", "points")
 
 
 @dataclass(frozen=True)
@@ -46,7 +49,7 @@ class Calibration:
     @classmethod
     def load(cls, path: Path) -> Calibration:
         document = json.loads(Path(path).read_text())
-        unknown = set(document["features"]) - set(FEATURES)
+        unknown = set(document["features"]) - set(FEATURES) - set(SCENE_FEATURES)
         if unknown:
             raise ValueError(f"{path}: features this engine does not measure: {sorted(unknown)}")
         return cls(

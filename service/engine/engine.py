@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation
 
 from service.engine import confidence
 from service.engine.alignment import alignment_error
-from service.engine.answer import Alignment, AlternativePose, Detection, SceneAnswer
+from service.engine.answer import Alignment, AlternativePose, SceneAnswer
 from service.engine.classifier import LinearClassifier, view_features, view_gram
 from service.engine.confidence import Calibration
 from service.engine.distance_field import DistanceField
@@ -46,30 +46,21 @@ from service.engine.principal_axes import flatness
 from service.engine.projection import DepthImage
 from service.engine.query import Observed, Query, Ranking, Stopwatch
 from service.engine.reference import Reference
-from service.engine.scene import Instance, frame_indices, near_surface, settle_claims
+from service.engine.scene import Scan, settle_claims
 from service.engine.search import Plan, Search, excellent, sure_first
-from service.engine.segments import adjacent, segments
+from service.engine.segments import segments
 from service.engine.supports import Noise, apply_supports, set_aside_supports
 from service.engine.surroundings import Reading, as_is, set_aside_surroundings
 from service.engine.symmetry import find_symmetry
-from service.engine.templates import likeliest, place_views
 from service.engine.tuning import (
     ALIKE,
-    CLAIM_TOLERANCE,
     DIFFERENT_DEG,
     FLAT,
     INSTANCE_FLOOR,
-    JOIN_PIXELS,
     KEEP_SHARE,
     MAX_ALTERNATIVES,
-    MAX_TRIES,
-    MIN_EXPLAINED,
-    MIN_SEGMENT,
-    NOISE_TOLERANCES,
     POOR_FIT,
     RIGHT_EITHER_WAY,
-    TEMPLATE_PARTS,
-    TEMPLATE_SIZES,
     THIN_PER_SCALE,
     VIEW_POINTS,
     WHOLE_REFINED,
@@ -95,10 +86,12 @@ class Engine:
         mapper: Mapper,
         settings: EngineSettings | None = None,
         calibration: Calibration | None = None,
+        scene_calibration: Calibration | None = None,
     ):
         self.mapper = mapper
         self.settings = settings or EngineSettings()
         self.calibration = calibration
+        self.scene_calibration = scene_calibration  # a detection's confidence, if fitted
         self._snapshot = Snapshot({}, None)
         self._write_lock = threading.Lock()
 
@@ -564,31 +557,41 @@ class Engine:
         max_instances: int = 20,
         roi: tuple[np.ndarray, np.ndarray] | None = None,
         min_confidence: float | None = None,
+        floor: float | None = None,
     ) -> SceneAnswer:
         """Every instance of a registered part in a camera's ``frame``: the supports set
         aside, the rest split into segments, each searched by the chain until nothing more
-        fits; then one global check among the instances."""
+        fits; then one global check among the instances. ``floor``: the least confidence of
+        an instance (default ``INSTANCE_FLOOR``; the calibration collects them all with 0)."""
         query = self.query(candidates, None, True, None, frame.viewpoint)
         clock = Stopwatch()
         frame = frame if roi is None else frame.cropped(*roi)
         scales = self._frame_scales(query, frame)
-        thin = frame.thinned(scales.min() / THIN_PER_SCALE)
+        thin = frame.thinned(scales.min() / THIN_PER_SCALE)  # thin
         angle = frame.pixel_angle()
         clock.lap("thin")
-        keep, supports = set_aside_supports(thin, angle, query.rng)
-        rest = thin.take(keep)
-        camera = DepthImage.of(thin)
+        keep, supports = set_aside_supports(thin, angle, float(scales.max()), query.rng)
         clock.lap("supports")
-        labels = segments(rest, angle)
+        rest = thin.take(keep)
+        labels = segments(rest, angle)  # segments
         clock.lap("segments")
-        noise = Noise(supports[0] if supports else None)
-        instances = self._instances(
-            query, rest, labels, (camera, noise), max_instances, min_confidence
+        scan = Scan(
+            self.align,
+            self.settings.tolerance,
+            self.scene_calibration,
+            query,
+            rest,
+            DepthImage.of(thin),
+            Noise(supports[0] if supports else None),
+            INSTANCE_FLOOR if floor is None else floor,
+            min_confidence,
         )
+        instances = scan.instances(labels, max_instances)  # explain, take out, search again
         clock.lap("instances")
-        instances = settle_claims(instances, len(rest), KEEP_SHARE)
+        instances = settle_claims(instances, len(rest), KEEP_SHARE)  # one global check
         clock.lap("global check")
-        return self._scene_answer(frame, supports, angle, instances, noise, clock)
+        seen = apply_supports(frame, supports, angle)  # at full resolution
+        return scan.answer(frame, seen, supports, instances, clock)
 
     def _frame_scales(self, query: Query, frame: Frame) -> np.ndarray:
         """The scales of the references a part in this frame could be: those no larger than
@@ -597,155 +600,6 @@ class Engine:
         size = radius(frame.points) if len(frame) else 0.0
         fits = scales[scales <= size]
         return fits if len(fits) else scales
-
-    def _instances(
-        self,
-        query: Query,
-        rest: Frame,
-        labels: np.ndarray,
-        sensor: tuple[DepthImage | None, Noise],
-        max_instances: int,
-        min_confidence: float | None,
-    ) -> list[Instance]:
-        """Each segment, largest first, searched by the chain; an answer that explains
-        ``MIN_EXPLAINED`` of its points is an instance, they are taken out, and the rest of
-        the segment searched again (``MAX_TRIES`` times at most). Then the segments where
-        nothing was found, joined with a neighbour in the image: a part cut in two."""
-        free = np.ones(len(rest), dtype=bool)
-        instances: list[Instance] = []
-        sizes = np.bincount(labels) if len(labels) else np.zeros(0, int)
-        search = lambda region: self._instance(query, rest, region, free, sensor, min_confidence)  # noqa: E731
-        failed = []
-        for segment in np.argsort(-sizes, kind="stable"):
-            if sizes[segment] < MIN_SEGMENT:
-                break
-            for tries in range(MAX_TRIES):
-                region = np.flatnonzero((labels == segment) & free)
-                if len(region) < MIN_SEGMENT or len(instances) >= max_instances:
-                    break
-                found = search(region)
-                if found is None:
-                    failed += [segment] if tries == 0 else []
-                    break
-                instances.append(found)
-                free[found.claimed] = False
-        for a, b in sorted(adjacent(rest, labels, np.array(failed), JOIN_PIXELS)):
-            region = np.flatnonzero(np.isin(labels, (a, b)) & free)
-            if len(region) < MIN_SEGMENT or len(instances) >= max_instances:
-                continue
-            found = search(region)
-            if found is not None:
-                instances.append(found)
-                free[found.claimed] = False
-        return instances
-
-    def _instance(self, query, rest, region, free, sensor, min_confidence) -> Instance | None:
-        """The chain's answer for the points ``region`` of ``rest`` as an instance claiming
-        the free points near its surface; else, the segment may hold several parts touching:
-        the likeliest parts' views placed over it (``templates``), and the chain asked about
-        the points the best placed view explains. None if neither explains enough.
-        ``sensor``: the frame's depth image (if it has one) and its noise."""
-        camera, noise = sensor
-        points = rest.points[region]
-        sigma = noise.at(points, rest.viewpoint)
-        answer = self._segment_answer(query, points, rest.viewpoint, min_confidence, sigma)
-        found = self._claim(query, rest, region, free, answer, sigma)
-        if found is not None:
-            return found
-        spacing = self._spacing(rest)
-        for entry in self._template_parts(query, points, rest.viewpoint, spacing, camera):
-            tolerance = query.tolerance(self.settings.tolerance, entry.reference.scale)
-            tolerance = max(tolerance, NOISE_TOLERANCES * sigma)
-            for pose in place_views(
-                entry, points, rest.viewpoint, spacing, tolerance, query.rng, camera
-            )[:1]:
-                close, _ = near_surface(
-                    points, entry, pose.rotation, pose.translation, CLAIM_TOLERANCE * tolerance
-                )
-                if len(close) < MIN_EXPLAINED:
-                    continue
-                again = self._segment_answer(
-                    query, points[close], rest.viewpoint, min_confidence, sigma
-                )
-                found = self._claim(query, rest, region, free, again, sigma)
-                if found is not None:
-                    return found
-        return None
-
-    def _segment_answer(self, query, points, viewpoint, min_confidence, noise) -> Alignment:
-        """The chain's answer for a segment's points, nothing set aside."""
-        candidates = [query.snapshot.classifier.labels[row] for row in query.allowed]
-        return self.align(
-            points,
-            candidates,
-            viewpoint=viewpoint,
-            min_confidence=min_confidence,
-            surroundings=False,
-            noise=noise,
-        )
-
-    def _template_parts(self, query, points, viewpoint, spacing, camera) -> list[Entry]:
-        """The parts to place over a segment: of those that fit inside it and are not far
-        smaller (``TEMPLATE_SIZES``), the ``TEMPLATE_PARTS`` whose views fit it best."""
-        size = radius(points)
-        low, high = TEMPLATE_SIZES
-        rows = [r for r in query.allowed if low * size <= query.snapshot.scales[r] <= high * size]
-        labels = query.snapshot.classifier.labels
-        entries = [query.snapshot.entries[labels[r]] for r in rows]
-        return likeliest(entries, points, viewpoint, spacing, query.rng, camera, TEMPLATE_PARTS)
-
-    @staticmethod
-    def _spacing(frame: Frame) -> float:
-        """The distance between neighbouring points of a (thinned) frame at its median range."""
-        if not len(frame):
-            return 0.0
-        return frame.pixel_angle() * frame.step * float(np.median(frame.ranges()))
-
-    def _claim(self, query, rest, region, free, answer, noise) -> Instance | None:
-        """``answer`` as an instance claiming the free points near its surface; None if it is
-        no registered part, or explains fewer than ``MIN_EXPLAINED`` of ``region``."""
-        if answer.verdict == "no_match" or (answer.confidence or 0.0) < INSTANCE_FLOOR:
-            return None
-        entry = query.snapshot.entries[answer.label]
-        tolerance = CLAIM_TOLERANCE * max(
-            self.settings.tolerance * entry.reference.scale, NOISE_TOLERANCES * noise
-        )
-        available = np.flatnonzero(free)
-        close, distance = near_surface(
-            rest.points[available], entry, answer.rotation, answer.translation, tolerance
-        )
-        claimed = available[close]
-        if np.isin(claimed, region).sum() < MIN_EXPLAINED:
-            return None
-        return Instance(answer, entry, claimed, distance)
-
-    def _scene_answer(self, frame, supports, angle, instances, noise, clock) -> SceneAnswer:
-        """The detections at the frame's full resolution, best first."""
-        seen = apply_supports(frame, supports, angle)
-        kept = frame.take(seen)
-        sigma = {id(i): noise.at(i.centre[None], frame.viewpoint) for i in instances}
-
-        def tolerance(instance: Instance) -> float:
-            scale = instance.entry.reference.scale
-            return CLAIM_TOLERANCE * max(
-                self.settings.tolerance * scale, NOISE_TOLERANCES * sigma[id(instance)]
-            )
-
-        owned = frame_indices(kept, instances, tolerance)
-        detections = [
-            Detection(i.answer, kept.index[mine], i.entry.symmetry.describe())
-            for i, mine in zip(instances, owned, strict=True)
-        ]
-        detections.sort(key=lambda d: -(d.answer.confidence or 0.0))
-        explained = sum(len(d.indices) for d in detections)
-        clock.lap("explained points")
-        return SceneAnswer(
-            detections,
-            len(frame),
-            int(seen.sum()) - explained,
-            [s.plane for s in supports],
-            clock.total(),
-        )
 
     def _nearest_views(
         self,

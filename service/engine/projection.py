@@ -67,12 +67,15 @@ class DepthImage:
             through = observed - z > tolerance
         return seen, through
 
-    def agreement(self, points: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    def agreement(
+        self, points: np.ndarray, tolerance: float, through_weight: float = 1.0
+    ) -> tuple[np.ndarray, np.ndarray]:
         """For sets of points (..., P, 3) the camera should see: each set moved along z by the
         median difference between the frame's depth and its own (its depth snapped onto the
         frame), then its share of points within ``tolerance`` of the frame's depth, weighed by
         how close (1 on it, 0 at the tolerance), less the share the camera saw through; of the
-        points not hidden by something nearer. The scores (...), and the depth shifts (...)."""
+        points not hidden by something nearer (``through_weight`` times that share). The scores
+        (...), and the depth shifts (...)."""
         z = points[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             column = np.rint(points[..., 0] / z * self.focal[0] + self.centre[0])
@@ -92,5 +95,5 @@ class DepthImage:
             through = residual > tolerance
             hidden = residual < -tolerance
         counted = np.maximum((~hidden).sum(axis=-1), 1)
-        score = (weight.sum(axis=-1) - through.sum(axis=-1)) / counted
+        score = (weight.sum(axis=-1) - through_weight * through.sum(axis=-1)) / counted
         return score, shift

@@ -4,20 +4,47 @@ segments, each with the points it explains, and one global check among them.
 A segment is searched as ``Engine.align`` searches a cloud; an answer that explains enough
 of it is an instance, its points (every point of the frame near its surface, the neighbouring
 segments' too: a part cut in two by a jump in depth is one instance) are taken out, and what
-is left of the segment is searched again, until nothing fits. Then the global check: each
-claimed point goes to the instance whose surface is nearest it, and an instance left with
-too little of what it claimed is dropped (it explained points another explains better).
+is left of the segment is searched again, until nothing fits. Where the chain finds nothing in
+a segment, it may hold several parts touching: the likeliest parts' views are placed over it
+(``templates``) and the chain asked about the points the best placed view explains. Segments
+where nothing was found are then tried joined with a neighbour (a part cut in two). Last the
+global check: each claimed point goes to the instance whose surface is nearest it, and an
+instance left with too little of what it claimed is dropped.
+
+An instance's confidence is the scene calibration's (``evidence``: the chain's confidence and
+what the frame's depth says of the pose), where one is fitted; else the chain's.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from service.engine.answer import Alignment
+from service.engine.answer import Alignment, Detection, SceneAnswer
+from service.engine.confidence import Calibration
 from service.engine.entry import Entry
 from service.engine.frame import Frame
+from service.engine.normalize import radius, subsample
+from service.engine.projection import DepthImage
+from service.engine.query import Query, Stopwatch
+from service.engine.segments import adjacent
+from service.engine.supports import Noise, Support
+from service.engine.templates import likeliest, place_views
+from service.engine.tuning import (
+    CLAIM_TOLERANCE,
+    DUPLICATE_GAP,
+    JOIN_PIXELS,
+    MAX_TRIES,
+    MIN_EXPLAINED,
+    MIN_SEGMENT,
+    NOISE_TOLERANCES,
+    SEGMENT_POINTS,
+    TEMPLATE_PARTS,
+    TEMPLATE_SIZES,
+    THROUGH_DOUBT,
+)
 from service.engine.verification import surface_distance
 
 
@@ -29,6 +56,7 @@ class Instance:
     entry: Entry
     claimed: np.ndarray  # (M,) indices into the searched frame's points
     distance: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))  # (M,)
+    evidence: dict[str, float] = field(default_factory=dict)  # ``evidence``
 
     @property
     def centre(self) -> np.ndarray:
@@ -56,9 +84,11 @@ def near_surface(
 
 
 def settle_claims(instances: list[Instance], count: int, keep_share: float) -> list[Instance]:
-    """The global check: a point claimed by several instances goes to the one whose surface
-    is nearest it; an instance left with less than ``keep_share`` of its claim is dropped,
-    and its points go back to the others that claimed them."""
+    """The global check: of two instances of one part at about one pose (``DUPLICATE_GAP``),
+    the less confident goes; a point claimed by several instances goes to the one whose
+    surface is nearest it; an instance left with less than ``keep_share`` of its claim is
+    dropped, and its points go back to the others that claimed them."""
+    instances = distinct(instances)
     while True:
         owner = np.full(count, -1)
         best = np.full(count, np.inf)
@@ -83,6 +113,22 @@ def settle_claims(instances: list[Instance], count: int, keep_share: float) -> l
     return instances
 
 
+def distinct(instances: list[Instance]) -> list[Instance]:
+    """The instances without those that place a part where a more confident instance of it
+    already lies (the mean distance between the two placed surfaces under ``DUPLICATE_GAP``
+    of its scale): one part found twice, from two of its segments."""
+    kept: list[Instance] = []
+    for instance in sorted(instances, key=lambda i: -(i.answer.confidence or 0.0)):
+        twin = any(
+            other.answer.label == instance.answer.label
+            and other.entry.gap(other.answer, instance.answer) < DUPLICATE_GAP
+            for other in kept
+        )
+        if not twin:
+            kept.append(instance)
+    return [i for i in instances if any(i is k for k in kept)]
+
+
 def frame_indices(frame: Frame, instances: list[Instance], tolerance_of) -> list[np.ndarray]:
     """Each instance's points at the frame's full resolution (indices into ``frame``), every
     point going to the instance whose surface is nearest it; ``tolerance_of(instance)``: how
@@ -99,3 +145,253 @@ def frame_indices(frame: Frame, instances: list[Instance], tolerance_of) -> list
         owner[close[nearer]] = k
         best[close[nearer]] = distance[nearer]
     return [np.flatnonzero(owner == k) for k in range(len(instances))]
+
+
+def evidence(
+    answer: Alignment,
+    entry: Entry,
+    claimed: int,
+    region: int,
+    viewpoint: np.ndarray,
+    camera: DepthImage | None,
+    tolerance: float,
+) -> dict[str, float]:
+    """What a frame says of an instance (``confidence.SCENE_FEATURES``): the chain's
+    confidence for its points (as a logit), fit, coverage and margin; of what the camera
+    should see of the part at its pose, the share the frame's depth shows (of what nothing
+    nearer hides) and the share the camera saw through; the share of its segment's points it
+    explains, and how many (log10)."""
+    chosen = min(max(answer.confidence or 0.0, 1e-4), 1 - 1e-4)
+    toward = (viewpoint - answer.translation) @ answer.rotation  # the camera, model frame
+    view = int(entry.views.nearest(toward[None])[0])
+    expected = entry.surface.points[entry.expected[view]] @ answer.rotation.T + answer.translation
+    seen, through = (0.0, 0.0)
+    if camera is not None:
+        shown, behind = camera.look(expected, tolerance)
+        hidden = ~shown & ~behind
+        counted = max(int((~hidden).sum()), 1)
+        seen, through = float(shown.sum() / counted), float(behind.sum() / counted)
+    else:
+        seen = answer.coverage
+    score = answer.fit * answer.coverage
+    return {
+        "chain": float(np.log(chosen / (1 - chosen))),
+        "fit": answer.fit,
+        "coverage": answer.coverage,
+        "margin": score - answer.runner_up,
+        "seen": seen,
+        "through": through,
+        "explained": claimed / max(region, 1),
+        "points": float(np.log10(max(claimed, 1))),
+    }
+
+
+@dataclass
+class Scan:
+    """One ``Engine.detect``: the frame's points left once its supports are set aside, what
+    its camera saw, and the search of its segments for instances."""
+
+    align: Callable[..., Alignment]  # Engine.align
+    tolerance: float  # the engine's fit and coverage tolerance, share of a part's scale
+    calibration: Calibration | None  # the scene calibration, if fitted
+    query: Query
+    frame: Frame  # thinned, supports set aside
+    camera: DepthImage | None
+    noise: Noise
+    floor: float  # an instance is at least this confident
+    min_confidence: float | None
+    free: np.ndarray = field(init=False)  # which points no instance has claimed yet
+
+    def __post_init__(self):
+        self.free = np.ones(len(self.frame), dtype=bool)
+
+    def instances(self, labels: np.ndarray, most: int) -> list[Instance]:
+        """Each segment, largest first, searched until nothing more fits in it (``MAX_TRIES``
+        instances at most); then the segments where nothing was found, joined with a
+        neighbour in the image."""
+        found: list[Instance] = []
+        sizes = np.bincount(labels) if len(labels) else np.zeros(0, int)
+        failed = []
+        for segment in np.argsort(-sizes, kind="stable"):
+            if sizes[segment] < MIN_SEGMENT:
+                break
+            for tries in range(MAX_TRIES):
+                region = np.flatnonzero((labels == segment) & self.free)
+                if len(region) < MIN_SEGMENT or len(found) >= most:
+                    break
+                instance = self.instance(region)
+                if instance is None:
+                    failed += [segment] if tries == 0 else []
+                    break
+                found.append(instance)
+                self.free[instance.claimed] = False
+        for a, b in sorted(adjacent(self.frame, labels, np.array(failed), JOIN_PIXELS)):
+            region = np.flatnonzero(((labels == a) | (labels == b)) & self.free)
+            if len(region) < MIN_SEGMENT or len(found) >= most:
+                continue
+            instance = self.instance(region)
+            if instance is not None:
+                found.append(instance)
+                self.free[instance.claimed] = False
+        return found
+
+    def instance(self, region: np.ndarray) -> Instance | None:
+        """The chain's answer for the points ``region`` as an instance claiming the free
+        points near its surface; else the likeliest parts' views placed over the region, and
+        the chain asked about the points the best explains. None if neither explains enough."""
+        points = self.frame.points[region]
+        sigma = self.noise.at(points, self.frame.viewpoint)
+        found = self.claim(region, self.answer_for(points, sigma), sigma)
+        if found is not None:
+            return found
+        spacing = self.spacing()
+        for entry in self.template_parts(points, spacing):
+            tolerance = self.part_tolerance(entry, sigma)
+            poses = place_views(
+                entry,
+                points,
+                self.frame.viewpoint,
+                spacing,
+                tolerance / entry.reference.scale,
+                self.query.rng,
+                self.camera,
+            )
+            if not poses:
+                continue
+            close, _ = near_surface(
+                points, entry, poses[0].rotation, poses[0].translation, CLAIM_TOLERANCE * tolerance
+            )
+            if len(close) < MIN_EXPLAINED:
+                continue
+            found = self.claim(region, self.answer_for(points[close], sigma), sigma)
+            if found is not None:
+                return found
+        return None
+
+    def answer_for(self, points: np.ndarray, sigma: float) -> Alignment:
+        """The chain's answer for a segment's points (``SEGMENT_POINTS`` of them at most),
+        nothing set aside."""
+        labels = self.query.snapshot.classifier.labels
+        return self.align(
+            points[subsample(points, SEGMENT_POINTS, self.query.rng)],
+            [labels[row] for row in self.query.allowed],
+            viewpoint=self.frame.viewpoint,
+            min_confidence=self.min_confidence,
+            surroundings=False,
+            noise=sigma,
+        )
+
+    def template_parts(self, points: np.ndarray, spacing: float) -> list[Entry]:
+        """The parts to place over a segment: of those that fit inside it and are not far
+        smaller (``TEMPLATE_SIZES``), the ``TEMPLATE_PARTS`` whose views fit it best."""
+        size = radius(points)
+        low, high = TEMPLATE_SIZES
+        snapshot = self.query.snapshot
+        rows = [r for r in self.query.allowed if low * size <= snapshot.scales[r] <= high * size]
+        entries = [snapshot.entries[snapshot.classifier.labels[r]] for r in rows]
+        return likeliest(
+            entries,
+            points,
+            self.frame.viewpoint,
+            spacing,
+            self.query.rng,
+            self.camera,
+            TEMPLATE_PARTS,
+        )
+
+    def spacing(self) -> float:
+        """The distance between neighbouring points of the frame at its median range."""
+        if not len(self.frame):
+            return 0.0
+        angle = self.frame.pixel_angle()
+        return angle * self.frame.step * float(np.median(self.frame.ranges()))
+
+    def part_tolerance(self, entry: Entry, sigma: float) -> float:
+        """The fit tolerance for a part here: its share of the scale, never under the
+        sensor's noise (``Query.tolerance``)."""
+        return max(self.tolerance * entry.reference.scale, NOISE_TOLERANCES * sigma)
+
+    def claim(self, region: np.ndarray, answer: Alignment, sigma: float) -> Instance | None:
+        """``answer`` as an instance claiming the free points near its surface, judged; None
+        if it is no registered part, explains fewer than ``MIN_EXPLAINED`` of ``region``, or
+        is less confident than the floor."""
+        if answer.verdict == "no_match" and answer.hypothesis == "none":
+            return None
+        entry = self.query.snapshot.entries[answer.label]
+        tolerance = CLAIM_TOLERANCE * self.part_tolerance(entry, sigma)
+        available = np.flatnonzero(self.free)
+        close, distance = near_surface(
+            self.frame.points[available], entry, answer.rotation, answer.translation, tolerance
+        )
+        claimed = available[close]
+        in_region = np.zeros(len(self.frame), dtype=bool)
+        in_region[region] = True
+        inside = int(in_region[claimed].sum())
+        if inside < MIN_EXPLAINED:
+            return None
+        instance = Instance(answer, entry, claimed, distance)
+        instance.evidence = evidence(
+            answer, entry, inside, len(region), self.frame.viewpoint, self.camera, tolerance
+        )
+        self.judge(instance)
+        if (instance.answer.confidence or 0.0) < self.floor:
+            return None
+        return instance
+
+    def judge(self, instance: Instance) -> None:
+        """The instance's confidence from the scene calibration, where one is fitted, its
+        verdict and reasons; else the chain's own."""
+        answer, said = instance.answer, instance.evidence
+        if self.calibration is None:
+            return
+        answer.confidence = self.calibration.confidence(said)
+        threshold = next(t for t in (self.min_confidence, self.calibration.accept) if t is not None)
+        if answer.confidence >= threshold:
+            answer.verdict, answer.reasons = "match", []
+            return
+        answer.verdict = "uncertain" if answer.confidence >= 0.2 else "no_match"
+        reasons = [f"the confidence {answer.confidence:.2f} is below the threshold {threshold:.2f}"]
+        if said["through"] > THROUGH_DOUBT:
+            reasons.append(
+                f"the camera saw through {said['through']:.0%} of where {answer.label} would "
+                "be at this pose: another part, or another pose"
+            )
+        if said["seen"] < 0.7:
+            reasons.append(
+                f"only {said['seen']:.0%} of what the camera should see of {answer.label} is "
+                "in view: it may be hidden by others, or not this part"
+            )
+        answer.reasons = reasons + [r for r in answer.reasons if "threshold" not in r]
+
+    def answer(
+        self,
+        frame: Frame,
+        seen: np.ndarray,
+        supports: list[Support],
+        instances: list[Instance],
+        clock: Stopwatch,
+    ) -> SceneAnswer:
+        """The detections at the frame's full resolution (``seen``: its points off the
+        supports), best first."""
+        kept = frame.take(seen)
+
+        def tolerance(instance: Instance) -> float:
+            sigma = self.noise.at(instance.centre[None], frame.viewpoint)
+            return CLAIM_TOLERANCE * self.part_tolerance(instance.entry, sigma)
+
+        owned = frame_indices(kept, instances, tolerance)
+        detections = [
+            Detection(i.answer, kept.index[mine], i.entry.symmetry.describe(), i.evidence)
+            for i, mine in zip(instances, owned, strict=True)
+            if len(mine)
+        ]
+        detections.sort(key=lambda d: -(d.answer.confidence or 0.0))
+        explained = sum(len(d.indices) for d in detections)
+        clock.lap("explained points")
+        return SceneAnswer(
+            detections,
+            len(frame),
+            int(seen.sum()) - explained,
+            [s.plane for s in supports],
+            clock.total(),
+        )

@@ -129,7 +129,9 @@ def adjacent(frame: Frame, labels: np.ndarray, chosen: np.ndarray, reach: int) -
     each other in an organized frame's image, whatever the depth between them (a part's near
     side hides its far side); for a cloud without a grid, within ``reach`` times the median
     distance between neighbouring points."""
-    pick = np.isin(labels, chosen)
+    chosen_mask = np.zeros(int(labels.max(initial=-1)) + 1, dtype=bool)
+    chosen_mask[np.asarray(chosen, dtype=np.intp)] = True
+    pick = chosen_mask[labels] if len(labels) else np.zeros(0, dtype=bool)
     if not pick.any():
         return set()
     if frame.shape is None:

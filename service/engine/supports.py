@@ -18,14 +18,19 @@ from service.engine.frame import Frame
 from service.engine.normalize import subsample
 from service.engine.tuning import (
     BEHIND_SHARE,
+    CARRIED_POINTS,
+    LATER_SHARE,
+    MAX_PLANES,
     MAX_SUPPORTS,
     PLANE_ITERATIONS,
     SENSOR_NOISE,
     SUPPORT_CELLS,
     SUPPORT_NOISE,
+    SUPPORT_REACH,
     SUPPORT_SAMPLE,
     SUPPORT_SHARE,
     SUPPORT_SPACINGS,
+    WALL_DEG,
 )
 
 
@@ -48,45 +53,67 @@ def tolerances(frame: Frame, angle: float) -> np.ndarray:
 
 
 def set_aside_supports(
-    frame: Frame, angle: float, rng: np.random.Generator
+    frame: Frame, angle: float, largest: float, rng: np.random.Generator
 ) -> tuple[np.ndarray, list[Support]]:
     """Which of the frame's points are left once the supports are set aside (a mask), and the
-    supports. ``angle``: the angle between neighbouring pixels' rays (``Frame.pixel_angle``)."""
+    supports. ``angle``: the angle between neighbouring pixels' rays (``Frame.pixel_angle``);
+    ``largest``: the largest scale a part in the frame may have (``is_wall``)."""
     keep = np.ones(len(frame), dtype=bool)
+    faces = np.zeros(len(frame), dtype=bool)  # on planes found to be parts' faces
     supports: list[Support] = []
     tolerance = tolerances(frame, angle)
-    cell = (
-        SUPPORT_CELLS * angle * frame.step * float(np.median(frame.ranges() if len(frame) else [0]))
-    )
-    for _ in range(MAX_SUPPORTS):
-        rest = np.flatnonzero(keep)
-        if len(rest) < SUPPORT_SHARE * len(frame) or len(rest) < 3:
+    ranges = frame.ranges() if len(frame) else np.zeros(1)
+    cell = SUPPORT_CELLS * angle * frame.step * float(np.median(ranges))
+    for _ in range(MAX_PLANES):
+        rest = np.flatnonzero(keep & ~faces)
+        # the first holds a share of the frame; the next (walls) a share of what is left
+        least = LATER_SHARE * keep.sum() if supports else SUPPORT_SHARE * len(frame)
+        if len(rest) < max(least, 3) or len(supports) == MAX_SUPPORTS:
             break
         found = largest_plane(frame.points[rest], tolerance[rest], rng)
-        if found is None or len(found[1]) < SUPPORT_SHARE * len(frame):
+        if found is None or len(found[1]) < least:
             break
         plane, on = found
         plane = plane * (1.0 if plane[:3] @ frame.viewpoint >= plane[3] else -1.0)
-        off = np.setdiff1d(rest, rest[on])
-        if not carries(frame.points[rest[on]], frame.points[off], plane, cell):
-            break  # the largest plane left is a part's face
+        others = keep.copy()
+        others[rest[on]] = False
+        off = np.flatnonzero(others)
+        on_plane = frame.points[rest[on]]
+        wide = reach(on_plane, plane) >= largest
+        wall = (
+            bool(supports)
+            and wide
+            and is_wall(on_plane, plane, supports[0], largest, tolerance[rest[on]])
+        )
+        # the first may carry nothing (an empty table); a later one is a wall, or carries
+        # something and reaches farther than a part's face could
+        least_over = CARRIED_POINTS if supports else 0
+        carrying = (not supports or wide) and carries(
+            on_plane, frame.points[off], plane, cell, least_over
+        )
+        if not wall and not carrying:
+            faces[rest[on]] = True  # a part's face: the next plane may still be a support
+            continue
         keep[rest[on]] = False
         if not supports:  # what lies beyond the surface the parts rest on
             keep &= frame.points @ plane[:3] - plane[3] > -tolerance
-        on_plane = frame.points[rest[on]]
         residual = on_plane @ plane[:3] - plane[3]
         spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
-        ranges = np.linalg.norm(on_plane - frame.viewpoint, axis=1)
-        supports.append(Support(plane, len(on), spread, float(np.median(ranges))))
+        distance = np.linalg.norm(on_plane - frame.viewpoint, axis=1)
+        supports.append(Support(plane, len(on), spread, float(np.median(distance))))
     return keep, supports
 
 
-def carries(on_plane: np.ndarray, others: np.ndarray, plane: np.ndarray, cell: float) -> bool:
+def carries(
+    on_plane: np.ndarray, others: np.ndarray, plane: np.ndarray, cell: float, least: int = 0
+) -> bool:
     """Whether a plane carries what lies over it, as a table does: of the other points over
-    the cells its own points occupy, less than ``BEHIND_SHARE`` lie behind it (away from the
-    camera), as the rest of a part lies behind its face."""
+    the cells its own points occupy (more than ``least`` of them, and than ``CARRIED_POINTS``:
+    else it is a bare surface, which carries only where ``least`` is 0), less than
+    ``BEHIND_SHARE`` lie behind it (away from the camera), as a part's rest lies behind its
+    face."""
     if not len(others):
-        return True
+        return least == 0
     axes = in_plane(plane[:3])
     mine = np.floor(on_plane @ axes / cell).astype(np.int64)
     low = mine.min(axis=0)
@@ -97,10 +124,33 @@ def carries(on_plane: np.ndarray, others: np.ndarray, plane: np.ndarray, cell: f
     inside = np.all((cells >= 0) & (cells < occupied.shape), axis=1)
     over = np.zeros(len(others), dtype=bool)
     over[inside] = occupied[cells[inside, 0], cells[inside, 1]]
-    if not over.any():
-        return True
+    if over.sum() <= max(least, CARRIED_POINTS):  # too few to judge by: a bare surface
+        return least == 0
     height = others[over] @ plane[:3] - plane[3]
     return bool(np.mean(height < 0) < BEHIND_SHARE)
+
+
+def is_wall(
+    on_plane: np.ndarray, plane: np.ndarray, floor: Support, largest: float, slack: np.ndarray
+) -> bool:
+    """Whether a plane is a bin's wall: upright on the first support (``WALL_DEG``), standing
+    on it, and reaching along it farther than any part could (``SUPPORT_REACH`` times the
+    largest part's scale). Behind a bin's near wall lies what the bin holds, so ``carries``
+    does not tell it from a part's face."""
+    upright = abs(float(plane[:3] @ floor.plane[:3])) < np.sin(np.radians(WALL_DEG))
+    if not upright:
+        return False
+    height = on_plane @ floor.plane[:3] - floor.plane[3]
+    if np.min(height - slack) > 0:
+        return False
+    return reach(on_plane, plane) >= SUPPORT_REACH * largest
+
+
+def reach(on_plane: np.ndarray, plane: np.ndarray) -> float:
+    """How far a plane's points reach across it from their centre (the 95th percentile)."""
+    offset = on_plane - on_plane.mean(axis=0)
+    across = offset - np.outer(offset @ plane[:3], plane[:3])
+    return float(np.percentile(np.linalg.norm(across, axis=1), 95))
 
 
 def in_plane(normal: np.ndarray) -> np.ndarray:

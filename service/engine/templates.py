@@ -18,17 +18,21 @@ import numpy as np
 
 from service.engine.entry import Entry
 from service.engine.icp import icp
+from service.engine.normalize import subsample
 from service.engine.projection import DepthImage
 from service.engine.tuning import (
     MAX_SEEDS,
     RANK_ANGLES,
     RANK_EVERY,
     RANK_SEEDS,
+    SEED_SAMPLE,
     SEED_SPACING,
     TEMPLATE_ANGLES,
+    TEMPLATE_ICP_POINTS,
     TEMPLATE_POINTS,
     TEMPLATE_REFINED,
     TEMPLATE_TOLERANCE,
+    THROUGH_WEIGHT,
 )
 from service.engine.verification import Occupancy
 from service.engine.views import camera_basis
@@ -42,14 +46,15 @@ class Placed:
 
 
 def seeds(points: np.ndarray, spacing: float, rng: np.random.Generator) -> np.ndarray:
-    """Indices of points spread over ``points`` (farthest first) until every point lies
-    within ``spacing`` of one, at most ``MAX_SEEDS``."""
-    chosen = [int(rng.integers(len(points)))]
-    distance = np.linalg.norm(points - points[chosen[0]], axis=1)
+    """Points spread over ``points`` (farthest first, among a sample of them) until every
+    point of the sample lies within ``spacing`` of one, at most ``MAX_SEEDS``."""
+    sample = points[subsample(points, SEED_SAMPLE, rng)]
+    chosen = [int(rng.integers(len(sample)))]
+    distance = np.linalg.norm(sample - sample[chosen[0]], axis=1)
     while len(chosen) < MAX_SEEDS and distance.max() > spacing:
         chosen.append(int(np.argmax(distance)))
-        distance = np.minimum(distance, np.linalg.norm(points - points[chosen[-1]], axis=1))
-    return np.array(chosen)
+        distance = np.minimum(distance, np.linalg.norm(sample - sample[chosen[-1]], axis=1))
+    return sample[chosen]
 
 
 def in_plane_turns(count: int) -> np.ndarray:
@@ -104,11 +109,11 @@ def screened(
     occupancy = Occupancy.around(points, TEMPLATE_TOLERANCE * scale, spacing)
     views = entry.views
     chosen = np.arange(0, len(views.radii), every)
-    model_bases = np.stack([camera_basis(views.directions[v]) for v in chosen])  # rows u v d
+    model_bases = views.bases[chosen]  # rows u v d: each view's camera
     turns = in_plane_turns(angles)
     expected = entry.surface.points[entry.expected[chosen, :TEMPLATE_POINTS]]
     found = []
-    for seed in points[seeds(points, SEED_SPACING * scale, rng)[:most_seeds]]:
+    for seed in seeds(points, SEED_SPACING * scale, rng)[:most_seeds]:
         scene_basis = camera_basis(viewpoint - seed)
         # R = B_scene^T T B_model: the view's camera direction onto the line of sight
         rotations = np.einsum("ji,tjk,vkl->vtil", scene_basis, turns, model_bases)
@@ -178,6 +183,7 @@ def refined(
     near = points[np.linalg.norm(points - centre, axis=1) <= 1.5 * scale]
     if len(near) < 16:
         return pose
+    near = near[subsample(near, TEMPLATE_ICP_POINTS, np.random.default_rng(0))]
     rotation, translation, _ = icp(
         near,
         entry.surface,
@@ -192,5 +198,6 @@ def refined(
     view = int(entry.views.nearest(toward[None])[0])
     expected = entry.surface.points[entry.expected[view]] @ rotation.T + translation
     if camera is not None:
-        return Placed(rotation, translation, float(camera.agreement(expected, tolerance)[0]))
+        score = camera.agreement(expected, tolerance, THROUGH_WEIGHT)[0]
+        return Placed(rotation, translation, float(score))
     return Placed(rotation, translation, float(fine.near(expected).mean()))

@@ -38,6 +38,7 @@ samples, and keeping them to what faces the camera too lost full clouds (paper-p
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -180,6 +181,11 @@ class Views:
             frames[k] = principal_axes(chosen - centroids[k])
             radii[k] = np.sqrt(((chosen - centroids[k]) ** 2).sum(axis=1).max())
         return cls(directions(count), visible, centroids, frames, radii)
+
+    @cached_property
+    def bases(self) -> np.ndarray:
+        """(K, 3, 3) each view's camera frame: rows u, v and its direction (``camera_basis``)."""
+        return np.stack([camera_basis(d) for d in self.directions])
 
     def nearest(self, toward: np.ndarray) -> np.ndarray:
         """(H,) the view whose camera direction is nearest each of ``toward`` (H, 3), camera

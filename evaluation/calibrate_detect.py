@@ -1,0 +1,167 @@
+"""Fit the confidence of ``POST /detect``'s detections (``service.engine.scene``) on whole
+frames, and check it on frames of parts it was not fitted on.
+
+    python -m evaluation.calibrate_detect                       # models/detect_confidence.json
+    python -m evaluation.calibrate_detect --frames 4 --out /tmp/d.json   # a try
+
+A part seen in a whole frame is often half hidden by others, and far smaller in the camera's
+view than the single views ``evaluation.calibrate`` fits the chain's confidence on: the chain
+then doubts instances that the frame shows clearly (their missing surface is hidden by a part
+in front of it, not absent). The detection's confidence is a logistic regression over what
+the frame says of an instance (``scene.evidence``: the chain's confidence, fit, coverage, the
+margin, the share of what the camera should see that its depth shows, the share it saw through,
+the share of its segment it explains, its points).
+
+Frames (``evaluation.frames``: scene, bin and foreign families) are drawn with one seed for
+fitting, their registered parts from the manifest's seen objects, and with another for checking,
+from the unseen ones; every part of the manifest but the foreign ones is registered, rescaled as
+the frames hold it (a gallery of 52). Every instance ``Engine.detect`` finds with no floor is
+kept with its evidence and whether it was right: the right part, ADD-S < 0.1 of its diameter,
+matched one to one with the ground truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from evaluation import frames as whole
+from evaluation.calibrate import PRECISION, fit_calibration, judge
+from evaluation.metrics import add_s, diameter
+from service.engine.confidence import SCENE_FEATURES, Calibration
+from service.engine.engine import Engine
+from service.engine.frame import Frame
+from service.engine.mapping import Mapper
+from service.engine.sampling import sample_surface, sample_surface_faces
+from service.settings import MODELS_DIR, Settings
+
+FAMILIES = {"scene": 3, "bin": 1, "foreign": 1}  # frames of each, per --frames
+ADD_S_POINTS = 4096
+
+
+def gallery_engine(parts: list[whole.FramePart]) -> Engine:
+    """An engine with every part registered from its rescaled mesh: the chain's calibration,
+    no scene calibration (an instance's confidence is the chain's)."""
+    settings = Settings()
+    chain = Calibration.load(settings.confidence_path)
+    engine = Engine(Mapper.from_settings(settings.model), settings.engine, chain)
+    references = []
+    for part in tqdm(parts, desc="register", leave=False):
+        points, faces = sample_surface_faces(part.mesh, 2048, 0)
+        references.append(
+            engine.make_reference(part.name, points, mesh=part.mesh, face_index=faces)
+        )
+    engine.load(references)
+    return engine
+
+
+def frame_of(frame: whole.Frame) -> Frame:
+    """The engine's view of a frame, as POST /detect makes it from its organized PCD."""
+    points = frame.points().reshape(-1, 3).astype(np.float64)
+    valid = np.flatnonzero(np.isfinite(points).all(axis=1))
+    return Frame.of(points[valid], valid, (frame.camera.height, frame.camera.width))
+
+
+def rows_of(engine: Engine, frame: whole.Frame, truth_points: dict) -> list[dict]:
+    """Each instance found in ``frame`` (no floor, the chain's confidence): its evidence, and
+    whether it was right, matched one to one, best first, with the ground truth."""
+    scene = engine.detect(frame_of(frame), floor=0.0)
+    used: set[int] = set()
+    rows = []
+    for detection in scene.detections:
+        answer, evidence = detection.answer, detection.evidence
+        points = truth_points.get(answer.label)
+        best, value = None, np.inf
+        for k, instance in enumerate(frame.instances):
+            if instance.name != answer.label or k in used or points is None:
+                continue
+            error = add_s(
+                points,
+                answer.rotation,
+                answer.translation,
+                instance.rotation,
+                instance.translation,
+                diameter(points),
+            )
+            if error < value:
+                best, value = k, error
+        right = best is not None and value < 0.1
+        if right:
+            used.add(best)
+        rows.append({**evidence, "right": bool(right), "label": answer.label,
+                     "family": frame.family, "frame": frame.stem})  # fmt: skip
+    return rows
+
+
+def collect(engine, family_counts, seed, pool, foreign, truth_points, desc) -> list[dict]:
+    rows = []
+    plan = [(family, i) for family, count in family_counts.items() for i in range(count)]
+    for family, index in tqdm(plan, desc=desc, leave=False):
+        frame = whole.make_frame(family, index, seed, pool, foreign)
+        rows += rows_of(engine, frame, truth_points)
+    return rows
+
+
+def acceptance(calibration: Calibration, rows: list[dict]) -> float:
+    """The lowest threshold at which ``PRECISION`` of the accepted instances are right."""
+    scores = np.array([calibration.confidence(row) for row in rows])
+    right = np.array([row["right"] for row in rows])
+    for threshold in np.arange(0.5, 0.995, 0.01):
+        accepted = scores >= threshold
+        if accepted.any() and right[accepted].mean() >= PRECISION:
+            return round(float(threshold), 2)
+    return 0.99
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(prog="python -m evaluation.calibrate_detect")
+    parser.add_argument("--out", type=Path, default=MODELS_DIR / "detect_confidence.json")
+    parser.add_argument("--frames", type=int, default=8, help="scene frames x3, bin, foreign")
+    parser.add_argument("--seed", type=int, default=11)
+    parser.add_argument("--rows", type=Path, default=None, help="also write every instance here")
+    args = parser.parse_args(argv)
+    began = time.perf_counter()
+    registered, foreign = whole.manifest_parts()
+    engine = gallery_engine(registered)
+    truth_points = {
+        p.name: sample_surface(p.mesh, ADD_S_POINTS, 1).astype(np.float64)
+        for p in registered + foreign
+    }
+    counts = {family: n * args.frames for family, n in FAMILIES.items()}
+    seen = [p for p in registered if p.split == "seen"]
+    unseen = [p for p in registered if p.split == "unseen"]
+    fit_rows = collect(engine, counts, args.seed, seen, foreign, truth_points, "fit frames")
+    check_rows = collect(
+        engine, counts, args.seed + 1, unseen, foreign, truth_points, "check frames"
+    )
+    calibration = fit_calibration(fit_rows, SCENE_FEATURES)
+    accept = acceptance(calibration, fit_rows)
+    about = {
+        "fitted": datetime.now(UTC).isoformat(timespec="seconds"),
+        "command": "python -m evaluation.calibrate_detect" + f" --frames {args.frames}",
+        "model_sha256": engine.mapper.model_hash,
+        "fit_frames": {k: v for k, v in counts.items()},
+        "fit": judge(calibration, fit_rows, accept),
+        "check": judge(calibration, check_rows, accept),
+        "accept": accept,
+        "seconds": round(time.perf_counter() - began, 1),
+    }
+    calibration = Calibration(*[getattr(calibration, f) for f in ("features", "weights",
+        "bias", "mean", "spread")], about, accept)  # fmt: skip
+    if args.rows:
+        args.rows.write_text(json.dumps({"fit": fit_rows, "check": check_rows}, default=float))
+    calibration.save(args.out)
+    for part in ("fit", "check"):
+        print(part, about[part])
+    print(f"detection calibration written to {args.out} in {about['seconds']:.0f} s")
+    return about
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,197 @@
+"""POST /detect through real HTTP on a real server: frames built by hand (tests/frames.py) of
+boxes and ducks on a table and in a bin, as a camera's driver writes them."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from tests.conftest import empty_server, pybullet_mesh
+from tests.frames import VGA, bin_walls, resting, shoot, spin, table
+
+BOX_A, BOX_B = (0.08, 0.06, 0.04), (0.10, 0.04, 0.03)
+
+
+def stl(mesh: trimesh.Trimesh) -> bytes:
+    buffer = io.BytesIO()
+    mesh.export(buffer, file_type="stl")
+    return buffer.getvalue()
+
+
+@pytest.fixture(scope="module")
+def meshes() -> dict[str, trimesh.Trimesh]:
+    duck = pybullet_mesh("duck.obj").copy()
+    duck.apply_translation(-duck.vertices.mean(axis=0))
+    duck.apply_scale(0.05 / np.linalg.norm(duck.vertices, axis=1).max())
+    return {
+        "box-a": trimesh.creation.box(BOX_A),
+        "box-b": trimesh.creation.box(BOX_B),
+        "duck": duck,
+    }
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory, meshes):
+    """A real server whose gallery holds the two boxes and the duck, registered as meshes."""
+    server = empty_server(tmp_path_factory.mktemp("detect"))
+    for name, mesh in meshes.items():
+        answer = server.client.post(
+            "/references",
+            data={"name": name},
+            files={"file": (f"{name}.stl", stl(mesh))},
+            params={"self_check": "false"},
+        )
+        assert answer.status_code == 201, answer.text
+    yield server
+    server.stop()
+
+
+def detect(server, shot, **fields):
+    answer = server.client.post(
+        "/detect", files={"file": ("frame.pcd", shot.pcd())}, data=fields, timeout=300.0
+    )
+    assert answer.status_code == 200, answer.text
+    return answer.json()
+
+
+def owners(shot, detection) -> np.ndarray:
+    """Which placed part each of a detection's pixels shows (-1: none)."""
+    return shot.shows.reshape(-1)[np.asarray(detection["indices"])]
+
+
+def assert_disjoint(body):
+    claimed = np.concatenate([d["indices"] for d in body["detections"]] or [[]])
+    assert len(claimed) == len(np.unique(claimed)), "two detections claim one point"
+
+
+def test_two_boxes_touching_on_a_table_are_two_detections(server, meshes):
+    a = resting(meshes["box-a"], np.eye(3), 0.0, 0.0)
+    b = resting(meshes["box-b"], spin(0), 0.0, (BOX_A[1] + BOX_B[1]) / 2)  # side against side
+    shot = shoot([(meshes["box-a"], *a), (meshes["box-b"], *b)], table())
+    body = detect(server, shot)
+    assert sorted(d["label"] for d in body["detections"]) == ["box-a", "box-b"], body
+    for k, label in enumerate(("box-a", "box-b")):
+        (found,) = [d for d in body["detections"] if d["label"] == label]
+        assert np.mean(owners(shot, found) == k) > 0.9  # its own box's pixels
+        assert np.linalg.norm(np.subtract(found["translation"], shot.poses[k][1])) < 0.01
+    assert_disjoint(body)
+
+
+def test_three_ducks_in_a_bin_one_lying_on_another_are_three(server, meshes):
+    duck = meshes["duck"]
+    turn = Rotation.from_euler("xz", [90, 40], degrees=True).as_matrix()
+    first = resting(duck, np.eye(3), -0.07, -0.05)
+    second = resting(duck, spin(120), 0.07, 0.06)
+    top = (duck.vertices @ first[0].T + first[1])[:, 2].max()
+    third = resting(duck, turn, -0.06, -0.04, z=top)  # lying on the first
+    shot = shoot([(duck, *first), (duck, *second), (duck, *third)], bin_walls(), elevation_deg=75)
+    body = detect(server, shot)
+    ducks = [d for d in body["detections"] if d["label"] == "duck"]
+    assert len(ducks) == 3, body
+    shown = sorted(int(np.bincount(owners(shot, d) + 1).argmax()) - 1 for d in ducks)
+    assert shown == [0, 1, 2]  # each a different duck
+    assert_disjoint(body)
+
+
+def test_an_empty_table_gives_no_detection(server):
+    shot = shoot([], table())
+    body = detect(server, shot)
+    assert body["detections"] == []
+    assert body["num_points"] == int(np.isfinite(shot.points[..., 0]).sum())
+    assert body["supports"], "the table is set aside as a support"
+
+
+def test_missing_pixels_are_skipped_and_not_counted(server, meshes):
+    a = resting(meshes["box-a"], spin(20), 0.0, 0.0)
+    shot = shoot([(meshes["box-a"], *a)], table(), elevation_deg=45, distance=1.2)
+    valid = int(np.isfinite(shot.points[..., 0]).sum())
+    assert valid < shot.points.shape[0] * shot.points.shape[1]  # the frame has missing pixels
+    for compressed in (False, True):
+        answer = server.client.post(
+            "/detect", files={"file": ("frame.pcd", shot.pcd(compressed))}, timeout=300.0
+        )
+        assert answer.status_code == 200, answer.text
+        assert answer.json()["num_points"] == valid
+    depth = server.client.post(
+        "/detect",
+        files={"file": ("depth.png", shot.depth_png())},
+        data={k: str(v) for k, v in shot.intrinsics.items()},
+        timeout=300.0,
+    )
+    assert depth.status_code == 200, depth.text
+    body = depth.json()
+    assert body["num_points"] == valid  # 0 pixels skipped
+    assert [d["label"] for d in body["detections"] if d["verdict"] == "match"] == ["box-a"]
+    width = shot.camera[0]
+    pixels = np.asarray(body["detections"][0]["indices"])
+    assert np.mean(shot.shows[pixels // width, pixels % width] == 0) > 0.9
+
+
+def test_a_frame_of_2048_by_1536_pixels_is_accepted(server, meshes):
+    a = resting(meshes["box-a"], spin(10), -0.1, 0.0)
+    b = resting(meshes["box-b"], spin(-30), 0.12, 0.05)
+    camera = (2048, 1536, VGA[2] * 2048 / VGA[0])
+    shot = shoot([(meshes["box-a"], *a), (meshes["box-b"], *b)], table(), camera=camera)
+    body = detect(server, shot)
+    assert body["num_points"] == int(np.isfinite(shot.points[..., 0]).sum()) > 2_000_000
+    assert sorted(d["label"] for d in body["detections"]) == ["box-a", "box-b"]
+
+
+def test_the_region_of_interest_is_all_that_is_searched(server, meshes):
+    a = resting(meshes["box-a"], spin(10), -0.12, 0.0)
+    b = resting(meshes["box-b"], spin(-30), 0.12, 0.05)
+    shot = shoot([(meshes["box-a"], *a), (meshes["box-b"], *b)], table())
+    centre = shot.poses[1][1]
+    low, high = centre - 0.09, centre + 0.09
+    body = detect(server, shot, roi=",".join(f"{v:.4f}" for v in (*low, *high)))
+    assert [d["label"] for d in body["detections"]] == ["box-b"]
+    points = shot.points.reshape(-1, 3)
+    inside = np.all((points >= low) & (points <= high), axis=1)
+    assert body["num_points"] == int(inside.sum())
+    assert inside[np.asarray(body["detections"][0]["indices"])].all()
+
+
+@pytest.mark.parametrize(
+    "request_kwargs, status, says",
+    [
+        ({"json": {"points": []}}, 422, "empty"),
+        ({"json": {"points": [[0, 0, 0]] * 40, "max_instances": 0}}, 422, "max_instances"),
+        (
+            {
+                "json": {
+                    "points": [[0.0, 0, 1], [1, 0, 1]] * 20,
+                    "roi": {"min": [1] * 3, "max": [0] * 3},
+                }
+            },
+            422,
+            "max",
+        ),
+        (
+            {"json": {"points": [[0.0, 0, 1], [1, 0, 1]] * 20, "candidates": ["nothing"]}},
+            404,
+            "nothing",
+        ),
+        ({"params": {"roi": "1,2,3"}, "content": b"\0" * 480}, 422, "six"),
+        ({"json": {"points": [[0.0, 0, 1], [1, 0, 1]] * 20, "colour": 1}}, 422, "colour"),
+    ],
+)
+def test_bad_input_is_refused_as_for_align(server, request_kwargs, status, says):
+    if "content" in request_kwargs:
+        request_kwargs["headers"] = {"Content-Type": "application/octet-stream"}
+    answer = server.client.post("/detect", **request_kwargs)
+    assert answer.status_code == status, answer.text
+    assert says in answer.json()["detail"]
+
+
+def test_an_empty_gallery_is_a_409(tmp_path):
+    empty = empty_server(tmp_path)
+    try:
+        answer = empty.client.post("/detect", json={"points": [[0.0, 0, 1], [1, 0, 1]] * 20})
+        assert answer.status_code == 409
+        assert "register" in answer.json()["detail"]
+    finally:
+        empty.stop()
