@@ -290,7 +290,10 @@ def readme_lines(frames: dict, report: dict) -> list[str]:
         " driver writes it: the organized binary PCD, or (one frame in"
         f" {plan['depth_png_every']}) a 16-bit depth PNG with its intrinsics. Unseen"
         " frames hold unseen parts only (the four kept out of the gallery as unregistered"
-        " ones); seen frames seen parts only.",
+        " ones); seen frames seen parts only. Seeds: the unseen and part-free frames"
+        f" {frames['seed']}, the seen ones {frames['seed'] + 1000}, the 1280 × 720 ones"
+        f" {frames['seed'] + 500}: not those `evaluation.calibrate_detect` fits and checks the"
+        " detection's confidence on (11, 12 by default).",
         "",
         'An instance is found when a `"match"` of its label has ADD-S < 0.1 of it (each'
         ' instance found once, detections taken by confidence); a `"match"` that finds none'
