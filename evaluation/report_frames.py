@@ -30,6 +30,7 @@ TARGET_HD_MS = 500.0
 TARGET_REFERENCES = 50
 DEFAULT_BUDGET_MS = 30_000  # the service's default request budget (limits.request_timeout_s)
 WRONG_KINDS = ("duplicate", "wrong pose", "wrong label", "not registered", "nothing")
+PIXEL_BANDS = (0, 500, 1000, 2000, 5000, None)  # an instance's pixels in the frame
 
 
 def _registered(records: list[dict]) -> list[dict]:
@@ -81,6 +82,26 @@ def summarize_frames(records: list[dict]) -> dict:
         "latency_ms_median": float(np.median(latencies)) if latencies else None,
         "latency_ms_p95": float(np.percentile(latencies, 95)) if latencies else None,
     }
+
+
+def by_pixels(records: list[dict]) -> list[dict]:
+    """Found and posed shares of the registered instances ≥ 50 % visible, by the pixels they
+    show in the frame."""
+    instances = [i for i in _registered(records) if i["visible_share"] >= 0.5]
+    rows = []
+    for low, high in zip(PIXEL_BANDS[:-1], PIXEL_BANDS[1:], strict=True):
+        top = np.inf if high is None else high
+        chosen = [i for i in instances if low <= i["pixels"] < top]
+        if chosen:
+            rows.append(
+                {
+                    "band": f"{low:,}-{high:,}" if high else f"{low:,} or more",
+                    "instances": len(chosen),
+                    "found": sum(bool(i["found"]) for i in chosen) / len(chosen),
+                    "posed": sum(i["found_as"] is not None for i in chosen) / len(chosen),
+                }
+            )
+    return rows
 
 
 def summarize_baseline(records: list[dict]) -> dict:
@@ -348,6 +369,14 @@ def readme_lines(frames: dict, report: dict) -> list[str]:
         f" {frames.get('request_timeout_s', 300):.0f} s, so that they are measured, not"
         f" abandoned): {every['over_default_budget']}.",
     ]
+    lines += ["", "By the pixels an instance shows (registered, ≥ 50 % visible, every frame):", ""]
+    lines += ["| pixels | instances | found | posed (any verdict) |"]
+    lines += ["| --- | ---: | ---: | ---: |"]
+    for row in by_pixels(frames["records"]):
+        lines.append(
+            f"| {row['band']} | {row['instances']} | {_percent(row['found'])} "
+            f"| {_percent(row['posed'])} |"
+        )
     lines += ["", "By body (every frame):", ""]
     lines += ["| body | frames | found, ≥ 50 % | 30-50 % | < 30 % | time median (ms) |"]
     lines += ["| --- | ---: | ---: | ---: | ---: | ---: |"]
