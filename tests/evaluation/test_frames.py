@@ -189,3 +189,11 @@ def test_the_same_seed_gives_the_same_frame(parts, scene):
     again = frames.make_frame("scene", 3, 0, *parts)
     np.testing.assert_array_equal(again.labels, scene.labels)
     np.testing.assert_array_equal(np.isnan(again.depth), np.isnan(scene.depth))
+
+
+def test_a_1280_by_720_frame_keeps_the_field_and_its_centre(parts):
+    frame = frames.make_frame("empty", 1, 0, *parts, camera=frames.HD)
+    assert frame.depth.shape == (720, 1280)
+    camera = frames.intrinsics(frame.camera)
+    assert (camera["cx"], camera["cy"], camera["fx"]) == (639.5, 359.5, 1050.0)
+    assert frames.read_pcd(frames.pcd_bytes(frame, compressed=True)).shape == (720, 1280, 3)
