@@ -56,6 +56,9 @@ class EngineSettings(BaseModel):
     # calibration's, the lowest at which 99.5 % of the matches it was fitted on were right
     accept: float | None = Field(None, ge=0, le=1)
     reject_below: float = Field(0.2, ge=0, le=1)  # below it "no_match", else "uncertain"
+    # after the single views, a best refined fit x coverage under this ends the search: no
+    # mapped pairs, no flips or near-symmetries (docs/decisions.md#speed); 0: never
+    hopeless: float = Field(0.0, ge=0, le=1)
     refine_best: int = Field(4, ge=1)  # hypotheses refined with ICP (at most 2 a part)
     icp_iterations: int = Field(12, ge=1)
     # when no refined hypothesis fits well, the best two of this many more parts are refined

@@ -209,6 +209,12 @@ class DetectResponse(BaseModel):
         "one the parts rest on"
     )
     timings_ms: dict[str, float] = Field(description="per stage, and 'total'")
+    complete: bool = Field(
+        True, description="every region of the frame was searched within the time budget"
+    )
+    reasons: list[str] = Field(
+        default_factory=list, description="why the search is incomplete, and what to change"
+    )
 
 
 class SelfCheck(BaseModel):

@@ -75,3 +75,5 @@ class SceneAnswer:
     unexplained: int  # of those, not set aside as a support nor explained by a detection
     supports: list[np.ndarray]  # (4,) planes n . x = d set aside, the first the parts rest on
     timings_ms: dict[str, float] = field(default_factory=dict)
+    complete: bool = True  # every region was searched before the deadline
+    reasons: list[str] = field(default_factory=list)  # why not, if not

@@ -344,7 +344,7 @@ class Engine:
         if not fits:  # nothing of a plausible size: no search over the wrong sizes
             return self._unanswered(query.snapshot, query.allowed, observed.points, ranking.scores)
         fits.sort(key=lambda f: -f.score)
-        if query.refine:
+        if query.refine and fits[0].score >= self.settings.hopeless:
             fits = search.finish(fits)  # 7, the best pose
         return self.decide(query, observed, ranking, search, fits)  # 8
 
@@ -375,7 +375,7 @@ class Engine:
         single views (rendered views), the pairs the learned mapping makes."""
         fits: list[Fit] = []
         for plan_of in (self._whole_part, self._single_views, self._mapped_pairs):
-            if excellent(fits, self.settings):
+            if excellent(fits, self.settings) or self._hopeless(fits, plan_of):
                 break
             plan = plan_of(query, observed, ranking)
             if plan is None:
@@ -384,6 +384,14 @@ class Engine:
             found = search.verify(made, plan)  # 6
             fits += search.refine(found, plan)  # 7
         return fits
+
+    def _hopeless(self, fits: list[Fit], next_pass) -> bool:
+        """Whether the search stops before the mapped pairs: after the single views, no
+        refined fit reaches ``settings.hopeless`` (fit x coverage). Another part, or none:
+        what the mapped pairs would add does not make a "match" of it."""
+        if next_pass != self._mapped_pairs or not self.settings.hopeless:
+            return False
+        return max((f.score for f in fits if f.refined), default=0.0) < self.settings.hopeless
 
     def _whole_part(self, query: Query, observed: Observed, ranking: Ranking) -> Plan | None:
         """The shortlist's whole-part hypotheses (principal axes): what a full cloud needs."""
@@ -562,11 +570,13 @@ class Engine:
         roi: tuple[np.ndarray, np.ndarray] | None = None,
         min_confidence: float | None = None,
         floor: float | None = None,
+        deadline: float | None = None,
     ) -> SceneAnswer:
         """Every instance of a registered part in a camera's ``frame``: the supports set
         aside, the rest split into segments, each searched by the chain until nothing more
         fits; then one global check among the instances. ``floor``: the least confidence of
-        an instance (default ``INSTANCE_FLOOR``; the calibration collects them all with 0)."""
+        an instance (default ``INSTANCE_FLOOR``; the calibration collects them all with 0);
+        ``deadline`` (``time.monotonic()``): no region is searched after it."""
         query = self.query(candidates, None, True, None, frame.viewpoint)
         clock = Stopwatch()
         frame = frame if roi is None else frame.cropped(*roi)
@@ -590,6 +600,7 @@ class Engine:
             INSTANCE_FLOOR if floor is None else floor,
             min_confidence,
             (float(scales.min()), float(scales.max())),
+            deadline,
         )
         instances = scan.instances(labels, max_instances)  # explain, take out, search again
         clock.lap("instances")

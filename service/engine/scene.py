@@ -17,6 +17,7 @@ what the frame's depth says of the pose), where one is fitted; else the chain's.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -211,10 +212,18 @@ class Scan:
     floor: float  # an instance is at least this confident
     min_confidence: float | None
     sizes: tuple[float, float]  # the smallest and largest scale a part here may have
+    deadline: float | None = None  # time.monotonic() by which the search stops
     free: np.ndarray = field(init=False)  # which points no instance has claimed yet
+    complete: bool = field(init=False, default=True)  # every region was searched in time
 
     def __post_init__(self):
         self.free = np.ones(len(self.frame), dtype=bool)
+
+    def in_time(self) -> bool:
+        """Whether there is time to search one more region (else the search is incomplete)."""
+        if self.deadline is not None and time.monotonic() > self.deadline:
+            self.complete = False
+        return self.complete
 
     def instances(self, labels: np.ndarray, most: int) -> list[Instance]:
         """Each segment, largest first, searched until nothing more fits in it (``MAX_TRIES``
@@ -230,6 +239,8 @@ class Scan:
                 region = np.flatnonzero((labels == segment) & self.free)
                 if not self.worth_searching(region) or len(found) >= most:
                     break
+                if not self.in_time():
+                    return found
                 instance = self.instance(region)
                 if instance is None:
                     failed += [segment] if tries == 0 else []
@@ -244,6 +255,8 @@ class Scan:
             too_big = radius(self.frame.points[region]) > JOIN_SCALES * self.sizes[1]
             if too_big or not self.worth_searching(region):
                 continue
+            if not self.in_time():
+                return found
             joins += 1
             instance = self.instance(region)
             if instance is not None:
@@ -455,10 +468,20 @@ class Scan:
         detections.sort(key=lambda d: -(d.answer.confidence or 0.0))
         explained = sum(len(d.indices) for d in detections)
         clock.lap("explained points")
+        reasons = (
+            []
+            if self.complete
+            else [
+                "the search ran out of its time budget before every region of the frame was "
+                "searched: send a region of interest (roi), fewer candidates, or a coarser frame"
+            ]
+        )
         return SceneAnswer(
             detections,
             len(frame),
             int(seen.sum()) - explained,
             [s.plane for s in supports],
             clock.total(),
+            self.complete,
+            reasons,
         )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from typing import Annotated, Any
 
 import numpy as np
@@ -39,6 +40,7 @@ from service.settings import Settings
 router = APIRouter(tags=["detect"])
 
 OPTIONS = tuple(DetectOptions.model_fields)  # candidates min_confidence viewpoint ...
+SEARCH_SHARE = 0.75  # of the request's time budget, for the search (the rest: the answer)
 BODY = {
     "required": True,
     "content": {
@@ -123,8 +125,15 @@ def _detect(
     viewpoint = options.viewpoint or implied
     frame = Frame.of(points, index, shape, None if viewpoint is None else np.asarray(viewpoint))
     roi = None if options.roi is None else (np.array(options.roi.min), np.array(options.roi.max))
+    # the search stops in time to answer with what it found, before the request's budget
+    deadline = time.monotonic() + SEARCH_SHARE * limits.request_timeout_s
     scene = engine.detect(
-        frame, options.candidates, options.max_instances, roi, options.min_confidence
+        frame,
+        options.candidates,
+        options.max_instances,
+        roi,
+        options.min_confidence,
+        deadline=deadline,
     )
     return detect_response(scene)
 
@@ -188,4 +197,6 @@ def detect_response(scene: SceneAnswer) -> DetectResponse:
         unexplained=scene.unexplained,
         supports=[np.asarray(plane, float).tolist() for plane in scene.supports],
         timings_ms=scene.timings_ms,
+        complete=scene.complete,
+        reasons=scene.reasons,
     )

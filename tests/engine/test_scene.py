@@ -1,0 +1,95 @@
+"""The scene layer's own rules on the real engine: the global check among instances, the
+duplicates it drops, and the search's deadline."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import trimesh
+
+from service.engine.confidence import Calibration
+from service.engine.engine import Engine
+from service.engine.frame import Frame
+from service.engine.mapping import Mapper
+from service.engine.sampling import sample_surface_faces
+from service.engine.scene import Instance, settle_claims
+from service.settings import Settings
+from tests.frames import resting, shoot, spin, table
+
+SETTINGS = Settings()
+
+
+@pytest.fixture(scope="module")
+def engine() -> Engine:
+    if not SETTINGS.model.path.exists():
+        pytest.skip(f"no ONNX model at {SETTINGS.model.path}")
+    engine = Engine(
+        Mapper.from_settings(SETTINGS.model),
+        SETTINGS.engine,
+        Calibration.load(SETTINGS.confidence_path),
+    )
+    box = trimesh.creation.box((0.08, 0.06, 0.04))
+    points, faces = sample_surface_faces(box, 2048, 0)
+    engine.load([engine.make_reference("box", points, mesh=box, face_index=faces)])
+    return engine
+
+
+def frame_of(shot) -> Frame:
+    height, width = shot.shows.shape
+    flat = shot.points.reshape(-1, 3).astype(np.float64)
+    valid = np.flatnonzero(np.isfinite(flat).all(axis=1))
+    return Frame.of(flat[valid], valid, (height, width))
+
+
+@pytest.fixture(scope="module")
+def one_box(engine):
+    box = engine.entry("box")
+    mesh = trimesh.creation.box((0.08, 0.06, 0.04))
+    shot = shoot([(mesh, *resting(mesh, spin(25), 0.0, 0.0))], table())
+    return box, shot
+
+
+def test_a_passed_deadline_answers_what_was_found_and_says_so(engine, one_box):
+    _, shot = one_box
+    scene = engine.detect(frame_of(shot), deadline=time.monotonic() - 1.0)
+    assert not scene.complete
+    assert scene.detections == []
+    assert any("time budget" in reason for reason in scene.reasons)
+    found = engine.detect(frame_of(shot))
+    assert found.complete and found.reasons == []
+    assert [d.answer.label for d in found.detections] == ["box"]
+
+
+def test_overlapping_claims_are_settled_point_by_point(engine, one_box):
+    box, _ = one_box
+    scene = engine.detect(frame_of(one_box[1]))
+    answer = scene.detections[0].answer
+    a = Instance(answer, box, np.arange(0, 100), np.full(100, 0.001))
+    # b claims the last 60 of a's points, nearer to 40 of them, farther from 20
+    b_distance = np.r_[np.full(40, 0.0005), np.full(20, 0.002)]
+    b = Instance(replace(answer, label="other"), box, np.arange(40, 100), b_distance)
+    settled = settle_claims([a, b], 100, keep_share=0.5)
+    assert len(settled) == 2
+    first, second = settled
+    assert set(first.claimed) & set(second.claimed) == set()
+    assert set(second.claimed) == set(range(40, 80))  # where it is nearer
+    assert set(first.claimed) == set(range(0, 40)) | set(range(80, 100))
+    # one whose claim another explains better nearly everywhere is dropped
+    c = Instance(replace(answer, label="other"), box, np.arange(0, 100), np.full(100, 0.0005))
+    kept = settle_claims(
+        [Instance(answer, box, np.arange(0, 100), np.full(100, 0.001)), c], 100, 0.5
+    )
+    assert [i.answer.label for i in kept] == ["other"]
+
+
+def test_one_part_found_twice_at_one_pose_is_one_instance(engine, one_box):
+    box, _ = one_box
+    answer = engine.detect(frame_of(one_box[1])).detections[0].answer
+    twin = replace(answer, confidence=(answer.confidence or 0) - 0.1)
+    a = Instance(answer, box, np.arange(0, 50), np.full(50, 0.001))
+    b = Instance(twin, box, np.arange(50, 100), np.full(50, 0.001))
+    kept = settle_claims([a, b], 100, keep_share=0.5)
+    assert kept == [a]
