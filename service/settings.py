@@ -101,6 +101,9 @@ class LimitSettings(BaseModel):
     min_points: int = Field(32, ge=3)
     max_points: int = Field(200_000, ge=1)
     max_body_bytes: int = Field(32 * 1024 * 1024, ge=1024)
+    # the bulk routes' body: a batch of parts (POST /references/batch), a gallery's backup or
+    # export (POST /gallery/restore, /gallery/import: about 0.6 MB a reference)
+    max_bulk_bytes: int = Field(1024 * 1024 * 1024, ge=1024)
     request_timeout_s: float = Field(30.0, gt=0)  # the engine's work for one request; then 504
     max_concurrent_align: int | None = Field(None, ge=1)  # default: server.workers_threads
     queue_timeout_s: float = Field(5.0, ge=0)  # wait for a free slot; then 503 + Retry-After

@@ -32,7 +32,7 @@ from service.api import auth, logs, startup
 from service.api.dependencies import Loading, NotReady
 from service.api.limiter import Busy, Limiter, TimedOut
 from service.api.recent import RecentAlignments
-from service.api.routes import align, alignments, health, points, references
+from service.api.routes import align, alignments, gallery, health, points, references
 from service.api.routes.common import UnsupportedMediaType
 from service.api.schemas import AlignOptions, AlignRequest, ReferenceRequest
 from service.api.uploads import cloud_upload_schema
@@ -42,12 +42,14 @@ from service.errors import (
     EmptyGallery,
     InvalidPoints,
     ReferenceExists,
+    StoreFull,
     StoreUnavailable,
     UnknownReference,
 )
+from service.gallery.backup import BackupInvalid
 from service.gallery.catalog import Catalog, GalleryFull
 from service.gallery.follower import follow
-from service.gallery.store import GalleryStore, StoreCorrupted, StoreIncompatible
+from service.gallery.store import GalleryStore, StoreCorrupted, StoreIncompatible, StoreNotEmpty
 from service.settings import Settings
 
 log = logging.getLogger("service")
@@ -63,9 +65,12 @@ STATUS = {  # the one status code of each error the engine, store and routes rai
     EmptyGallery: 409,
     ReferenceExists: 409,
     GalleryFull: 409,
+    StoreNotEmpty: 409,  # a restore into a gallery that holds references
+    BackupInvalid: 422,  # not a usable copy of a gallery: the detail names the problem
     UnsupportedMediaType: 415,
     NotReady: 503,
     StoreUnavailable: 503,  # the gallery's database is out of reach: a write may be retried
+    StoreFull: 507,  # no room on the gallery's disk: nothing stored, reads still served
     Busy: 503,  # with Retry-After
     TimedOut: 504,
 }
@@ -99,13 +104,21 @@ def create_app(
     app.state.settings = settings
     app.state.prepared = prepared
     app.state.recent = RecentAlignments(settings.recent_alignments)
-    routers = (align.router, points.router, alignments.router, references.router, health.router)
+    routers = (
+        align.router,
+        points.router,
+        alignments.router,
+        references.router,
+        gallery.router,
+        health.router,
+    )
     for router in routers:
         app.include_router(router)
     if settings.console.enabled:
         _add_console(app)
     _add_error_handlers(app)
-    app.add_middleware(BodyLimit, max_bytes=settings.limits.max_body_bytes)
+    bulk = dict.fromkeys(BULK_ROUTES, settings.limits.max_bulk_bytes)
+    app.add_middleware(BodyLimit, max_bytes=settings.limits.max_body_bytes, larger=bulk)
     _add_metrics(app)  # counts every answer, the 413s included
     app.add_middleware(logs.RequestLog)  # outermost: every answer has a request id
     app.openapi = lambda: _openapi(app)
@@ -199,16 +212,25 @@ def _load(catalog: Catalog, settings: Settings, loading: Loading) -> bool:
     return loading.ready
 
 
-class BodyLimit:
-    """413 for a body over ``max_bytes``: by its Content-Length, or by the bytes actually read."""
+BULK_ROUTES = ("/references/batch", "/gallery/restore", "/gallery/import")
 
-    def __init__(self, app: ASGIApp, max_bytes: int):
+
+class BodyLimit:
+    """413 for a body over ``max_bytes`` (on the paths of ``larger``, their limit): by its
+    Content-Length, or by the bytes actually read."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int, larger: dict[str, int] | None = None):
         self.app = app
         self.max_bytes = max_bytes
+        self.larger = larger or {}
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
+            return
+        if scope["path"] in self.larger:
+            limited = BodyLimit(self.app, self.larger[scope["path"]])
+            await limited(scope, receive, send)
             return
         declared = dict(scope["headers"]).get(b"content-length")
         if declared is not None:
@@ -371,6 +393,24 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
                 "type": "string",
                 "format": "binary",
                 "description": "a mesh (.stl, .obj, .ply) or a cloud (.ply, .pcd, .npy)",
+            },
+        },
+    }
+    schemas["ReferenceBatch"] = {
+        "title": "ReferenceBatch",
+        "type": "object",
+        "required": ["file"],
+        "additionalProperties": False,
+        "properties": {
+            "file": {
+                "type": "array",
+                "items": {"type": "string", "format": "binary"},
+                "description": "one mesh or cloud a part (repeat the field)",
+            },
+            "name": {
+                "type": "array",
+                "items": name,
+                "description": "one a file, in order (default: each file's name without suffix)",
             },
         },
     }

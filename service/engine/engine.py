@@ -113,6 +113,7 @@ class Engine:
         self.calibration = calibration
         self._snapshot = Snapshot({}, None)
         self._write_lock = threading.Lock()
+        self.refits = 0  # how many times the classifier was refitted (one a change, or a batch)
 
     # --- a reference ------------------------------------------------------------------
 
@@ -203,14 +204,22 @@ class Engine:
 
     def add(self, reference: Reference) -> None:
         """Add a reference, or replace the one of its name."""
-        entry = Entry.of(reference, self.settings.grid_blur)
-        share = view_gram([entry.view_features])  # its views' part of the Gram, off the lock
+        self.add_many([reference])
+
+    def add_many(self, references: list[Reference]) -> None:
+        """Add references (or replace those of their names) with one refit of the classifier."""
+        if not references:
+            return
+        entries_added = {r.name: Entry.of(r, self.settings.grid_blur) for r in references}
+        # their views' part of the Gram, off the lock
+        share = view_gram([entry.view_features for entry in entries_added.values()])
         with self._write_lock:
             entries, gram = self._snapshot.entries, self._snapshot.gram
             gram = share if gram is None else gram + share
-            if (previous := entries.get(reference.name)) is not None:
-                gram -= view_gram([previous.view_features])
-            self._publish({**entries, reference.name: entry}, gram)
+            replaced = [entries[name] for name in entries_added if name in entries]
+            if replaced:
+                gram -= view_gram([previous.view_features for previous in replaced])
+            self._publish({**entries, **entries_added}, gram)
 
     def remove(self, name: str) -> None:
         with self._write_lock:
@@ -227,6 +236,7 @@ class Engine:
         ``gram`` is kept by sums across changes (one reference's share added or taken away),
         so a refit costs the same whatever the gallery's size."""
         classifier = None
+        self.refits += 1
         if entries:
             classifier = LinearClassifier.fit(
                 list(entries),
