@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,6 +82,7 @@ class Query:
 
 
 VIEW_POINTS = 512  # a rendered view's grid is made of at most this many of its points
+SELF_CHECK_THREADS = 2  # renders of the registration check aligned at once
 FLAT = 0.03  # an observation this flat (smallest over largest principal spread) is one face
 
 
@@ -127,13 +129,22 @@ class Engine:
     ) -> Reference:
         """Compute what the engine needs of a new object from its points (sampled on ``mesh``'s
         faces ``face_index``, when it came as a mesh): mapped points, view grids, scale, then
-        normals, rendered views, distance field and symmetry."""
+        normals, rendered views, distance field and symmetry.
+
+        The network's share (the points, the augmented views, then the rendered views) runs in
+        a thread of its own beside the geometry (onnxruntime lets go of the GIL while it runs);
+        each view's randomness is drawn first, in the order one thread drew it, so the
+        reference is the same bit for bit (docs/operations.md, "Registration time")."""
         points = np.asarray(points, dtype=np.float32)
-        mapped = self.map(points)
         rng = np.random.default_rng(self.settings.seed if seed is None else seed)
-        views = [self.view_grid(points, rng) for _ in range(self.settings.view_grids)]
-        reference = Reference(name, points, mapped, np.stack(views), radius(points))
-        return self.complete(reference, mesh, face_index)
+        augmented = [self.augmented_view(points, rng) for _ in range(self.settings.view_grids)]
+        scale = radius(points)
+        with ThreadPoolExecutor(1, thread_name_prefix="network") as network:
+            mapped = network.submit(self.map, points, True)
+            grids = network.submit(self._grids, augmented)
+            derived = self._derive(points, scale, mesh, face_index, network)
+            reference = Reference(name, points, mapped.result(), grids.result(), scale)
+        return reference.with_(**derived)
 
     def complete(
         self,
@@ -143,10 +154,24 @@ class Engine:
     ) -> Reference:
         """The reference with every derived field computed (those it lacks, or all of them
         when a mesh is given): normals, views, distance field, symmetry."""
-        settings = self.settings
         if mesh is None and not reference.missing:
             return reference
-        points = np.asarray(reference.points, dtype=np.float64)
+        with ThreadPoolExecutor(1, thread_name_prefix="network") as network:
+            derived = self._derive(reference.points, reference.scale, mesh, face_index, network)
+        return reference.with_(**derived)
+
+    def _derive(
+        self,
+        points: np.ndarray,
+        scale: float,
+        mesh: trimesh.Trimesh | None,
+        face_index: np.ndarray | None,
+        network: ThreadPoolExecutor,
+    ) -> dict:
+        """The derived fields of a reference of these points and scale; the rendered views'
+        grids are mapped on ``network`` while this thread finds the symmetry."""
+        settings = self.settings
+        points = np.asarray(points, dtype=np.float64)
         tree = cKDTree(points)
         if mesh is not None:  # the views see the mesh's own surface; normals are its faces'
             surface = np.asarray(
@@ -154,28 +179,33 @@ class Engine:
                     mesh, settings.mesh_surface_points, seed=settings.seed + 1
                 )[0]
             )
-            visible = render(points, reference.scale, settings.views, surface, mesh.area)
+            visible = render(points, scale, settings.views, surface, mesh.area)
             normals = mesh_normals(mesh, face_index, points, directions(settings.views), visible)
         else:
-            visible = render(points, reference.scale, settings.views, tree=tree)
+            visible = render(points, scale, settings.views, tree=tree)
             normals = estimate_normals(points, tree=tree)
             normals = orient_by_views(points, normals, directions(settings.views), visible)
         if mesh is None:  # a cloud's own buffer lets through what its camera hardly samples;
             # a view left facing nothing (a few points, normals at odds) keeps what it showed
-            faced = visible & facing(points, normals, reference.scale, settings.views)
+            faced = visible & facing(points, normals, scale, settings.views)
             visible = np.where(faced.any(axis=1, keepdims=True), faced, visible)
-        distance_field = DistanceField.of(points, reference.scale, tree=tree)
+        seen = [points[shown][:VIEW_POINTS] for shown in visible]
+        grids = network.submit(self._grids, seen)
+        distance_field = DistanceField.of(points, scale, tree=tree)
         surface_model = Surface.of(points, normals, distance_field, tree)
-        grids = np.stack([grid(self.map(points[seen][:VIEW_POINTS])) for seen in visible])
-        symmetry = find_symmetry(surface_model, reference.scale, np.random.default_rng(0))
-        return reference.with_(
-            normals=normals.astype(np.float32),
-            visibility=np.packbits(visible, axis=1),
-            view_features=view_features(grids, settings.grid_blur).astype(np.float16),
-            field=distance_field.nearest,
-            field_frame=np.array([*distance_field.origin, distance_field.voxel]),
-            symmetry=symmetry.describe(),
-        )
+        symmetry = find_symmetry(surface_model, scale, np.random.default_rng(0))
+        return {
+            "normals": normals.astype(np.float32),
+            "visibility": np.packbits(visible, axis=1),
+            "view_features": view_features(grids.result(), settings.grid_blur).astype(np.float16),
+            "field": distance_field.nearest,
+            "field_frame": np.array([*distance_field.origin, distance_field.voxel]),
+            "symmetry": symmetry.describe(),
+        }
+
+    def _grids(self, clouds: list[np.ndarray]) -> np.ndarray:
+        """(V, 64, 64) the grids of these clouds' mapped points (on the quiet session)."""
+        return np.stack([grid(self.map(cloud, quiet=True)) for cloud in clouds])
 
     def refind_symmetry(self, reference: Reference) -> Reference:
         """The reference with its symmetry found again by this version's rule, from its stored
@@ -185,14 +215,17 @@ class Engine:
         return reference.with_(symmetry=symmetry.describe())
 
     def view_grid(self, points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """The grid of an augmented view: a random pose, a single camera's view with
+        """The grid of an augmented view (``augmented_view``)."""
+        return grid(self.map(self.augmented_view(points, rng)))
+
+    def augmented_view(self, points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """An augmented view of the points: a random pose, a single camera's view with
         probability ``partial_views``, and 10-100 % of the remaining points kept."""
         if rng.random() < self.settings.partial_views:
             points = points[visible_points(points, random_camera(points, 3.0, rng))]
         count = min(len(points), self.settings.network_points)
         keep = max(16, int(count * rng.uniform(0.1, 1.0)))
-        view = points[subsample(points, keep, rng)] @ Rotation.random(random_state=rng).as_matrix()
-        return grid(self.map(view))
+        return points[subsample(points, keep, rng)] @ Rotation.random(random_state=rng).as_matrix()
 
     # --- the gallery ------------------------------------------------------------------
 
@@ -291,9 +324,9 @@ class Engine:
 
     # --- the chain --------------------------------------------------------------------
 
-    def map(self, points: np.ndarray) -> np.ndarray:
-        """Normalise a cloud as training did and map it to 2-D."""
-        return self.mapper.map(normalize(points, self.mapper.canonical).points)
+    def map(self, points: np.ndarray, quiet: bool = False) -> np.ndarray:
+        """Normalise a cloud as training did and map it to 2-D (``quiet``: ``Mapper.map``'s)."""
+        return self.mapper.map(normalize(points, self.mapper.canonical).points, quiet)
 
     def align(
         self,
@@ -620,7 +653,9 @@ class Engine:
         removal), and the camera's place is its viewpoint. Each check says what was answered
         and how far its rotation is from the truth, the part's symmetry accounted for."""
         rng = np.random.default_rng(self.settings.seed + 1)
-        entry = Entry.of(reference, self.settings.grid_blur)
+        entry = self._snapshot.entries.get(reference.name)
+        if entry is None or entry.reference is not reference:  # not the one the gallery holds
+            entry = Entry.of(reference, self.settings.grid_blur)
         points = np.asarray(reference.points, dtype=np.float64)
         if mesh is not None:
             sample = np.asarray(trimesh.sample.sample_surface(mesh, len(points), seed=7)[0])
@@ -642,22 +677,27 @@ class Engine:
             else:
                 seen = splat_visible(sample, surface, camera, sample_spacing(surface, mesh.area))
             renders.append(("view", sample[seen], camera))
-        checks = []
-        for kind, cloud, camera in renders:
-            rotation = Rotation.random(random_state=rng).as_matrix()
-            translation = rng.uniform(-1, 1, 3) * reference.scale
+        # every pose drawn first, in the order one thread drew them; the renders are then
+        # aligned two at a time (their numpy, cKDTree and onnxruntime steps let go of the GIL)
+        poses = [
+            (Rotation.random(random_state=rng).as_matrix(), rng.uniform(-1, 1, 3) * reference.scale)
+            for _ in renders
+        ]
+
+        def check(render: tuple[str, np.ndarray, np.ndarray | None], pose) -> dict:
+            (kind, cloud, camera), (rotation, translation) = render, pose
             scene = cloud @ rotation.T + translation
             viewpoint = None if camera is None else rotation @ camera + translation
             result = self.align(scene, viewpoint=viewpoint)
-            checks.append(
-                {
-                    "render": kind,
-                    "label": result.label,
-                    "label_ok": result.label == reference.name,
-                    "rotation_error_deg": entry.symmetry.distance_deg(result.rotation, rotation),
-                    "alignment_error_normalized": result.alignment_error_normalized,
-                    "verdict": result.verdict,
-                    "confidence": result.confidence,
-                }
-            )
-        return checks
+            return {
+                "render": kind,
+                "label": result.label,
+                "label_ok": result.label == reference.name,
+                "rotation_error_deg": entry.symmetry.distance_deg(result.rotation, rotation),
+                "alignment_error_normalized": result.alignment_error_normalized,
+                "verdict": result.verdict,
+                "confidence": result.confidence,
+            }
+
+        with ThreadPoolExecutor(SELF_CHECK_THREADS, thread_name_prefix="self-check") as pool:
+            return list(pool.map(check, renders, poses))
