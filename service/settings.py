@@ -85,6 +85,9 @@ class GallerySettings(BaseModel):
     poll_s: float = Field(0.25, gt=0)  # how often a replica checks for others' changes anyway
     listen: bool = True  # PostgreSQL LISTEN/NOTIFY (off behind a pooler in transaction mode)
     pool_size: int = Field(4, ge=1)  # PostgreSQL connections per replica
+    # how long a request waits for a PostgreSQL connection while the database is out of reach
+    # (a registration then answers 503 with the reason; an alignment never waits for it)
+    connect_timeout_s: float = Field(5.0, gt=0)
     reference_points: int = Field(2048, ge=64)  # a mesh upload is sampled to this many points
     max_references: int = Field(1000, ge=1)
     self_check_poses: int = Field(3, ge=0)  # poses a registration is checked on (0: no check)

@@ -335,7 +335,9 @@ def _add_console(app: FastAPI) -> None:
 
 
 def _add_metrics(app: FastAPI) -> None:
-    """Prometheus at ``/metrics``: requests, latencies and status codes per route, references."""
+    """Prometheus at ``/metrics``: requests, latencies and status codes per route, references,
+    and the writes (registrations, deletions, restores) being worked on: what a replica held
+    when it died."""
     registry = CollectorRegistry()  # one per app, so several apps can live in one process
     Instrumentator(
         should_group_status_codes=False,
@@ -345,6 +347,12 @@ def _add_metrics(app: FastAPI) -> None:
     app.state.metrics_references = Gauge(
         "dpc_references", "References in the gallery", registry=registry
     )
+    writes = Gauge(
+        "dpc_writes_in_progress",
+        "Registrations, deletions, restores and imports being worked on",
+        registry=registry,
+    )
+    writes.set_function(lambda: getattr(getattr(app.state, "limiter", None), "writing", 0))
 
 
 def _document_auth(document: dict[str, Any], settings: Settings) -> None:

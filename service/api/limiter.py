@@ -74,6 +74,7 @@ class Limiter:
         self.align_slots = align_slots
         self.queue_timeout_s = queue_timeout_s
         self.request_timeout_s = request_timeout_s
+        self.writing = 0  # write requests waiting for the lane or in it (a metric)
         self._align = asyncio.Semaphore(align_slots)
         self._write = asyncio.Semaphore(WRITE_SLOTS)
         # as many threads as slots: a job that holds a slot always finds a thread
@@ -89,9 +90,13 @@ class Limiter:
         stores anything. Waiting for the lane counts against the budget (``budget_s``, by
         default the request's: a batch of parts gets one a part)."""
         budget = budget_s or self.request_timeout_s
-        await self._acquire(self._write, budget, "write")
-        job = Job()
-        return await self._run(self._write, job, work, job, *args, budget_s=budget)
+        self.writing += 1
+        try:
+            await self._acquire(self._write, budget, "write")
+            job = Job()
+            return await self._run(self._write, job, work, job, *args, budget_s=budget)
+        finally:
+            self.writing -= 1
 
     def close(self) -> None:
         """Stop taking work; threads still running finish on their own."""

@@ -129,7 +129,12 @@ def open_store(settings: GallerySettings) -> GalleryStore:
     if settings.url:
         from service.gallery.postgres_store import PostgresStore
 
-        return PostgresStore(settings.url, pool_size=settings.pool_size, listen=settings.listen)
+        return PostgresStore(
+            settings.url,
+            pool_size=settings.pool_size,
+            listen=settings.listen,
+            timeout_s=settings.connect_timeout_s,
+        )
     from service.gallery.sqlite_store import SQLiteStore
 
     return SQLiteStore.in_dir(settings.data_dir)
