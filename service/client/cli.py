@@ -307,11 +307,10 @@ def describe_pose(pose: Pose) -> str:
 
 
 def describe_reference(reference: Reference) -> str:
-    done = "already registered, identical" if reference.raw.get("outcome") == "identical" else ""
-    text = (
-        f"{done or 'registered'} {reference.name}: {reference.num_points} points, "
-        f"scale {reference.scale:.4g}"
-    )
+    done = f"registered {reference.name}"
+    if reference.raw.get("outcome") == "identical":
+        done = f"{reference.name} was already registered, identical"
+    text = f"{done}: {reference.num_points} points, scale {reference.scale:.4g}"
     checks = reference.self_check or []
     if checks:
         right = sum(bool(check.get("label_ok")) for check in checks)
