@@ -246,10 +246,10 @@ class Client:
         return self._request("POST", route, data=fields | options, files=files)
 
     def _download(self, route: str, params: dict[str, Any], path: Path) -> int:
+        """A copy streamed into ``path`` (beside it first, renamed once whole)."""
         partial = path.with_name(path.name + ".partial")
         try:
-            answer = self._request("GET", route, params=params)
-            partial.write_bytes(answer.content)
+            answer = self._request("GET", route, params=params, into=partial)
             os.replace(partial, path)
         finally:
             partial.unlink(missing_ok=True)
@@ -286,9 +286,21 @@ class Client:
                 self.on_retry(problem, wait)
             time.sleep(wait)
 
-    def _send(self, method: str, route: str, **kwargs: Any) -> httpx.Response:
+    def _send(
+        self, method: str, route: str, into: Path | None = None, **kwargs: Any
+    ) -> httpx.Response:
+        """One attempt; ``into``: a successful answer's body is streamed into that file."""
         try:
-            return self._http.request(method, route, **kwargs)
+            if into is None:
+                return self._http.request(method, route, **kwargs)
+            with self._http.stream(method, route, **kwargs) as answer:
+                if answer.is_error:
+                    answer.read()
+                    return answer
+                with open(into, "wb") as file:
+                    for chunk in answer.iter_bytes(1 << 20):
+                        file.write(chunk)
+                return answer
         except httpx.TransportError as error:
             raise Unreachable(f"cannot reach the service at {self.url}: {error}") from error
 

@@ -178,9 +178,8 @@ def _finish(path: Path, kind: str, source: str) -> list[Entry]:
     the file ends as one self-contained file, synced to disk."""
     with closing(sqlite3.connect(path, isolation_level=None)) as conn:
         conn.execute("PRAGMA journal_mode=DELETE")  # no -wal file beside a copy
-        rows = conn.execute(f"SELECT {COLUMNS} FROM reference ORDER BY name").fetchall()
         entries = []
-        for row in rows:
+        for row in conn.execute(f"SELECT {COLUMNS} FROM reference ORDER BY name"):  # one a time
             try:
                 record = _record(row)
             except StoreCorrupted as error:  # a damaged row is not copied as if it were sound
