@@ -149,6 +149,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--model", type=Path, default=MODELS_DIR / "dpc_mn.onnx")
     parser.add_argument("--gallery", type=Path, default=MODELS_DIR / "gallery.npz")
     parser.add_argument("--json", type=Path)
+    parser.add_argument(
+        "--records", type=Path, help="write every case's scored answer (default variant) here"
+    )
     args = parser.parse_args(argv)
     args.families = [f for f in args.families.split(",") if f]
     unknown = [f for f in args.families if f not in FAMILIES]
@@ -195,6 +198,8 @@ def main(argv: list[str] | None = None) -> dict:
         run = engine_runner(variant, "engine", study.gallery)
         records = run_system(run, "engine", study, truths)
         report["settings"][name] = changes
+        if args.records and name == "default":
+            args.records.write_text(json.dumps(records, indent=0, default=float))
         report["variants"][name] = {
             family: summary([r for r in records if r["family"] == family])
             for family in args.families

@@ -1,4 +1,5 @@
-"""``python -m evaluation``: the evaluation of shared/EVALUATION.md (``evaluation.evaluate``)."""
+"""``python -m evaluation``: the evaluation of docs/evaluation-protocol.md
+(``evaluation.evaluate``)."""
 
 from evaluation.evaluate import main
 

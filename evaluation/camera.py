@@ -65,15 +65,10 @@ class DepthPoints:
     distance: np.ndarray  # (M,) the true distance along the ray, before noise
 
 
-def cast(
-    meshes: list[trimesh.Trimesh],
-    rng: np.random.Generator,
-    camera: Camera = DEFAULT_CAMERA,
-    noise_share: float = DEPTH_NOISE_SHARE,
-) -> DepthPoints:
-    """Cast one ray per pixel at ``meshes`` (already placed in the camera frame) and keep the
-    first hit of each: the points the camera sees, with Gaussian noise of σ = ``noise_share``
-    × the distance along the ray."""
+def cast_rays(meshes: list[trimesh.Trimesh], directions: np.ndarray):
+    """Cast a ray from the origin along each of ``directions`` (unit, (K, 3)) at ``meshes``
+    (already placed in the camera frame): the distance to the first hit of each (infinity for
+    a miss) and which mesh it hit (-1 for a miss)."""
     import open3d as o3d  # the eval extra; imported here so the module loads without it
 
     scene = o3d.t.geometry.RaycastingScene()
@@ -84,13 +79,27 @@ def cast(
         )
         for mesh in meshes
     ]
-    directions = camera.rays()
     rays = np.hstack([np.zeros_like(directions), directions]).astype(np.float32)
     hits = scene.cast_rays(o3d.core.Tensor(rays))
     distance = hits["t_hit"].numpy().astype(np.float64)
     hit = np.isfinite(distance)
-    distance, directions = distance[hit], directions[hit]
-    geometry = hits["geometry_ids"].numpy()[hit]
-    mesh_index = np.searchsorted(np.asarray(ids), geometry)
+    mesh_index = np.full(len(distance), -1, dtype=np.intp)
+    mesh_index[hit] = np.searchsorted(np.asarray(ids), hits["geometry_ids"].numpy()[hit])
+    return distance, mesh_index
+
+
+def cast(
+    meshes: list[trimesh.Trimesh],
+    rng: np.random.Generator,
+    camera: Camera = DEFAULT_CAMERA,
+    noise_share: float = DEPTH_NOISE_SHARE,
+) -> DepthPoints:
+    """Cast one ray per pixel at ``meshes`` (already placed in the camera frame) and keep the
+    first hit of each: the points the camera sees, with Gaussian noise of σ = ``noise_share``
+    × the distance along the ray."""
+    directions = camera.rays()
+    distance, mesh_index = cast_rays(meshes, directions)
+    hit = mesh_index >= 0
+    distance, directions, mesh_index = distance[hit], directions[hit], mesh_index[hit]
     measured = distance * (1.0 + noise_share * rng.normal(size=distance.shape))
     return DepthPoints(directions * measured[:, None], mesh_index, distance)

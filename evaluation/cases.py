@@ -1,4 +1,4 @@
-"""The case families of shared/EVALUATION.md, deterministic given a seed.
+"""The case families of docs/evaluation-protocol.md, deterministic given a seed.
 
 Each case is an object's mesh resampled with a seed of its own (never seed 0, the
 reference's), moved by a known pose ``scene = R @ model + t`` and shuffled. Its ``params``
@@ -26,7 +26,7 @@ noise σ = 0.15 % of the distance along each ray; the cloud is in the camera fra
   camera and anywhere in the middle half of the image; hundreds to thousands of points, as
   the view has them.
 
-Knowing when not to answer (EVALUATION.md's second table):
+Knowing when not to answer (docs/evaluation-protocol.md's second table):
 
 - ``foreign``: for each case index, an so3 full cloud and a ``sensor`` view of a part that
   is not registered (the caller passes meshes kept out of the gallery); expected

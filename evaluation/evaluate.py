@@ -1,5 +1,5 @@
-"""The evaluation of shared/EVALUATION.md: the engine, its ablations and the two baselines on the
-same cases, seen and unseen objects, written to a report.
+"""The evaluation of docs/evaluation-protocol.md: the engine, its ablations and the two
+baselines on the same cases, seen and unseen objects, written to a report.
 
     python -m evaluation --out docs/evaluation            # the full run (see below)
     python -m evaluation --quick --out /tmp/evaluation    # a few objects (~1.5 min)
@@ -25,7 +25,10 @@ The studies, each on cases built by ``evaluation.cases`` with one seed:
   ``sensor`` views of a small gallery (the baselines take about a second per reference and
   query), at least 40 identical cases in the full plan;
 - ``noise``: so3 cases with Gaussian noise of σ = 0 to 4 % of the scale, the engine and the
-  baselines on the side-by-side gallery, and the engine on the full gallery.
+  baselines on the side-by-side gallery, and the engine on the full gallery;
+- ``frames`` (with HTTP): whole camera frames posted to ``POST /detect`` of a real server, and
+  FPFH told the right parts, on the same frames (``evaluation.detect``; alone: ``python -m
+  evaluation.detect``).
 
 Every engine answer's verdict, confidence, reasons, points set aside and step timings are
 kept per case (``evaluation.records``).
@@ -50,6 +53,7 @@ import numpy as np
 from tqdm import tqdm
 
 from evaluation.cases import ANSWER_FAMILIES, Case, make_cases, object_scale
+from evaluation.detect import FULL_FRAMES, QUICK_FRAMES, FramePlan, run_frames
 from evaluation.metrics import ADD_S_POINTS, diameter
 from evaluation.records import NO_ANSWER, Answer, Truth, case_record
 from service.engine.engine import Engine
@@ -123,6 +127,7 @@ class Plan:
     sensor_side_cases: int  # sensor views per object of that gallery
     keep_shares: tuple[float, ...] = (0.1, 0.3, 0.5, 0.7, 0.9)
     engine_systems: tuple[str, ...] = ("engine", *ABLATIONS)
+    frames: FramePlan | None = None  # the whole-frame study (POST /detect), run with HTTP
 
 
 FULL = Plan(
@@ -151,6 +156,7 @@ FULL = Plan(
     sensor_side_seen=4,
     sensor_side_unseen=4,
     sensor_side_cases=5,
+    frames=FULL_FRAMES,
 )
 QUICK = Plan(
     seen=3,
@@ -179,6 +185,7 @@ QUICK = Plan(
     sensor_side_unseen=1,
     sensor_side_cases=1,
     keep_shares=(0.1, 0.5, 0.9),
+    frames=QUICK_FRAMES,
 )
 
 
@@ -592,6 +599,12 @@ def evaluate(
         )
         seconds["http"] = time.perf_counter() - began_http
 
+    frames = None
+    if http and plan.frames is not None:
+        began_frames = time.perf_counter()
+        frames = run_frames(plan.frames, seed, model, gallery, log)
+        seconds["frames"] = time.perf_counter() - began_frames
+
     return {
         "machine": machine(),
         "started_utc": started,
@@ -618,6 +631,7 @@ def evaluate(
         "splits": split_of,
         "foreign": [spec.name for spec in foreign_specs],
         "http": http_result,
+        "frames": frames,
         "records": records,
     }
 

@@ -38,7 +38,7 @@ from service.settings import MODELS_DIR, EngineSettings
 from training.objects import load_manifest, load_object_meshes
 
 SOLVERS = ("paper", "kabsch", "ransac")
-NOISE = 0.01  # share of the scale, as EVALUATION.md's noisy family
+NOISE = 0.01  # share of the scale, as docs/evaluation-protocol.md's noisy family
 
 
 def prepare_engine(

@@ -1,4 +1,4 @@
-"""The metrics of shared/EVALUATION.md, for one case at a time and summed over many.
+"""The metrics of docs/evaluation-protocol.md, for one case at a time and summed over many.
 
 Poses follow ``scene_point = R @ model_point + t`` everywhere.
 """

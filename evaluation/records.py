@@ -1,8 +1,8 @@
 """One answer to one case, scored: what the evaluation keeps of every query.
 
 A system's answer (the engine's ``Alignment`` or a baseline's dict) becomes an ``Answer``;
-``case_record`` measures it against the case's truth (shared/EVALUATION.md's metrics) and says
-whether it was the right thing to do: accept a right pose, refuse a cloud of no registered
+``case_record`` measures it against the case's truth (docs/evaluation-protocol.md's metrics) and
+says whether it was the right thing to do: accept a right pose, refuse a cloud of no registered
 part, or, for a millimetre cloud, answer the pose in its units or refuse naming the units.
 """
 

@@ -21,6 +21,8 @@ import numpy as np  # noqa: E402
 from evaluation.cases import FAMILIES  # noqa: E402
 from evaluation.metrics import ADD_S_POINTS, PRECISE_ADD_S, SUCCESS_ADD_S, summarize  # noqa: E402
 from evaluation.report_answers import answers_report, plot_reliability, readme_lines  # noqa: E402
+from evaluation.report_frames import frames_report, write_plots  # noqa: E402
+from evaluation.report_frames import readme_lines as frames_lines  # noqa: E402
 
 SETS = ("seen", "unseen")
 BASELINE_NAMES = {"ppf": "PPF (OpenCV)", "fpfh": "FPFH + RANSAC + ICP (Open3D)"}
@@ -481,7 +483,8 @@ def readme(
         " full clouds and sensor views. The baselines orient normals toward the camera where"
         " the case has one.",
         "",
-        f"Metrics as shared/EVALUATION.md: success = right label and ADD-S < {SUCCESS_ADD_S};"
+        "Metrics as docs/evaluation-protocol.md:"
+        f" success = right label and ADD-S < {SUCCESS_ADD_S};"
         f" precise = right label and ADD-S < {PRECISE_ADD_S}; ADD-S on {ADD_S_POINTS:,} points of"
         " the mesh (on the reference's 2,048 an answer that differs from the truth by a symmetry"
         " of the part scores 0.020-0.022, the sampling's floor, at the precise threshold; on"
@@ -549,8 +552,19 @@ def write_report(result: dict, out: Path) -> None:
         "baseline_settings": baseline_settings(),
         "records": records,
     }
+    frames = result.get("frames")  # the whole-frame study, kept in its own frames.json
+    if frames is None and (out / "frames.json").exists():
+        frames = json.loads((out / "frames.json").read_text())
+    elif frames is not None:
+        (out / "frames.json").write_text(json.dumps(frames, indent=1, default=_plain) + "\n")
+    document.pop("frames", None)
     (out / "results.json").write_text(json.dumps(document, indent=1, default=_plain) + "\n")
-    (out / "README.md").write_text(readme(result, table, goal_rows, lat_rows, data, answers))
+    text = readme(result, table, goal_rows, lat_rows, data, answers)
+    if frames is not None:
+        frame_figures = frames_report(frames)
+        write_plots(frames, frame_figures, out)
+        text = text.rstrip("\n") + "\n\n" + "\n".join(frames_lines(frames, frame_figures))
+    (out / "README.md").write_text(text)
 
 
 def main(argv: list[str] | None = None) -> None:

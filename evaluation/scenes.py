@@ -1,6 +1,6 @@
 """What a robot cell's depth camera sends, built from a mesh at a known pose.
 
-- ``sensor_view``: the part alone in front of the camera (shared/EVALUATION.md, ``sensor``);
+- ``sensor_view``: the part alone in front of the camera (docs/evaluation-protocol.md, ``sensor``);
 - ``table_scene``: the part resting on a table that the same camera sees obliquely, cropped
   around the part, with stray points (``table``);
 - ``junk_cloud``: clouds of no part at all (``junk``);

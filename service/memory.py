@@ -11,7 +11,7 @@ glibc keeps what those frees leave in its arenas for later use, and returns litt
 - Free pages between live blocks stay resident. ``release_free_heap`` (``malloc_trim``)
   hands them back; the catalog calls it after each change (a few milliseconds).
 
-Measured (scripts/load.py, README "Sustained load"): a growing gallery cost 2.2 MiB of
+Measured (scripts/load.py, docs/operations.md#memory): a growing gallery cost 2.2 MiB of
 resident memory a reference, where a reference holds 0.7 MB; with the trim alone, three
 changes a second beside two aligning threads still crept up by 1.4 MiB a minute, with both
 it stayed flat (+0.1). Other C libraries are left alone.

@@ -42,9 +42,7 @@ class EngineSettings(BaseModel):
     hypotheses: tuple[str, ...] = ("views", "principal-axes", "mapped")
     views: int = Field(100, ge=4)  # single-camera views rendered per reference
     view_candidates: int = Field(6, ge=1)  # parts the nearest rendered views propose
-    # a candidate's hypotheses kept by the quick first look; 12 and 64 verify points and 12 ICP
-    # iterations against 32, 96 and 20: sensor views 62 -> 48 ms (median, quiet 2 cores), every
-    # family's success within one case (docs/operations.md, "Speed against accuracy")
+    # a candidate's hypotheses kept by the quick first look (docs/decisions.md#speed)
     screened: int = Field(12, ge=1)
     ransac_iterations: int = Field(200, ge=1)  # at most; fewer once an all-inlier draw is sure
     ransac_threshold: float = Field(0.08, gt=0)  # inlier distance, share of the reference's scale
@@ -59,8 +57,7 @@ class EngineSettings(BaseModel):
     refine_best: int = Field(4, ge=1)  # hypotheses refined with ICP (at most 2 a part)
     icp_iterations: int = Field(12, ge=1)
     # when no refined hypothesis fits well, the best two of this many more parts are refined
-    # (on half the ICP budget; the best of them then on the rest): 4 took depth views of
-    # unseen parts from 91.7 to 97.2 % success at +2 ms median (docs/operations.md); 0: off
+    # (on half the ICP budget; docs/decisions.md#refine); 0: off
     rescued_parts: int = Field(4, ge=0)
     # the best pose turned by its part's near-symmetries: this many of the turned poses nearest
     # the surface are refined, and the one nearest after refining answered (0: not tried)
@@ -102,8 +99,10 @@ class GallerySettings(BaseModel):
 
 class LimitSettings(BaseModel):
     min_points: int = Field(32, ge=3)
-    max_points: int = Field(200_000, ge=1)
-    max_body_bytes: int = Field(32 * 1024 * 1024, ge=1024)
+    # valid points of a cloud or frame: a 2,048 x 1,536 camera's (missing pixels not counted)
+    max_points: int = Field(2048 * 1536, ge=1)
+    # a 2,048 x 1,536 binary PCD of x y z rgb floats (binary_compressed: less)
+    max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024)
     # the bulk routes' body: a batch of parts (POST /references/batch), a gallery's backup or
     # export (POST /gallery/restore, /gallery/import: about 0.6 MB a reference)
     max_bulk_bytes: int = Field(1024 * 1024 * 1024, ge=1024)

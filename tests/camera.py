@@ -1,8 +1,8 @@
 """What a depth camera gives, for the tests: a mesh's depth image rendered by a z-buffer.
 
-The camera of shared/EVALUATION.md's sensor family: 320x240 pixels, focal length 300 px, at the
-origin looking along +z (x right, y down). The surface is sampled densely and each pixel keeps
-its nearest sample, so each pixel's depth lies on the surface within about half a pixel.
+The camera of docs/evaluation-protocol.md's sensor family: 320x240 pixels, focal length 300 px,
+at the origin looking along +z (x right, y down). The surface is sampled densely and each pixel
+keeps its nearest sample, so each pixel's depth lies on the surface within about half a pixel.
 """
 
 from __future__ import annotations

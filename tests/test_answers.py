@@ -11,10 +11,11 @@ from scipy.spatial.transform import Rotation
 from evaluation.metrics import add_s, diameter, geodesic_deg
 from service.engine.confidence import Calibration, measures
 from service.engine.engine import Engine
+from service.engine.fits import Fit
 from service.engine.mapping import Mapper
 from service.engine.sampling import sample_surface_faces
-from service.engine.search import ALIKE, RIGHT_EITHER_WAY, Fit
 from service.engine.surroundings import set_aside_surroundings
+from service.engine.tuning import ALIKE, RIGHT_EITHER_WAY
 from service.engine.views import directions
 from service.gallery.gallery_file import load_gallery
 from service.settings import Settings

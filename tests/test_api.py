@@ -1,4 +1,4 @@
-"""The HTTP contract of shared/API.md, against the real app and model over real HTTP.
+"""The HTTP contract of docs/api.md, against the real app and model over real HTTP.
 
 Each server is uvicorn in a background thread on a free loopback port, with a gallery of its
 own; the module runs against each store backend (SQLite, then PostgreSQL: ``backend``). The

@@ -83,6 +83,7 @@ def test_quick_run_writes_the_report(tmp_path: Path):
         "## Tables: sensor-side-by-side",
         "## Knowing when not to answer",
         "## Latency",
+        "## Whole frames",
     ):
         assert heading in readme
     results = json.loads((tmp_path / "results.json").read_text())
@@ -108,4 +109,12 @@ def test_quick_run_writes_the_report(tmp_path: Path):
     assert answers["verdicts"] and answers["symmetric"] and answers["targets"]
     assert {row["issue"] for row in answers["targets"]} == {11, 12, 16}
     for name in PLOTS.values():
+        assert (tmp_path / name).stat().st_size > 1000, name
+    frames = json.loads((tmp_path / "frames.json").read_text())
+    assert {r["family"] for r in frames["records"]} >= {"scene", "bin", "empty"}
+    assert {r["body"] for r in frames["records"]} == {"pcd", "depth-png"}
+    assert frames["baseline"] and all(b["instances"] for b in frames["baseline"])
+    from evaluation.report_frames import PLOTS as FRAME_PLOTS
+
+    for name in FRAME_PLOTS.values():
         assert (tmp_path / name).stat().st_size > 1000, name

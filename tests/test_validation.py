@@ -1,4 +1,4 @@
-"""Every bad-points class of API.md is refused with a message naming it; good points pass."""
+"""Every bad-points class of docs/api.md is refused with a message naming it; good points pass."""
 
 import numpy as np
 import pytest

@@ -45,7 +45,7 @@ class TrainConfig:
     views_per_epoch: int = 8  # clouds of each object per epoch
     batch: int = 16  # the paper's batch size
     optimizer: Literal["adam", "sgd"] = (
-        "adam"  # measured faster than the paper's "sgd" (see README)
+        "adam"  # measured faster than the paper's "sgd" (docs/decisions.md#which-training-ships)
     )
     lr: float = 1e-3  # the paper's learning rate, for both optimisers
     momentum: float = 0.9  # SGD only, the paper's

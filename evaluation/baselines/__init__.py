@@ -1,4 +1,4 @@
-"""The systems a user would pick instead, measured on the same cases (shared/EVALUATION.md).
+"""The systems a user would pick instead, measured on the same cases (docs/evaluation-protocol.md).
 
 Each is a class built from ``references: dict[name, (N, 3) points]`` (every reference in its
 own model frame) whose ``align(points)`` returns ``{"label", "rotation", "translation",

@@ -142,3 +142,100 @@ class FPFHRecognizer:
             "score": float(fitness),
             "inlier_rmse": float(-negative_rmse),
         }
+
+
+# --- whole frames: several instances of one part ---------------------------------------------
+
+FRAME_VOXEL_MIN = 0.004  # a frame's voxel: the reference's, but no finer than a VGA pixel at 1 m
+PLANE_DISTANCE_VOXELS = 1.5  # a support plane: points within this of it (RANSAC, Open3D)
+PLANE_SHARE = 0.1  # ... set aside while it holds this share of the frame's points ...
+PLANE_MAX = 3  # ... at most this many (the table, the floor, a bin's floor)
+EXPLAINED_VOXELS = 2.0  # a found instance takes out the frame's points this near it
+MIN_FRAME_POINTS = 30
+
+
+def _thin_frame(points: np.ndarray, voxel: float) -> np.ndarray:
+    """The frame thinned to ``voxel``, its large planes set aside."""
+    scene = _cloud(points).voxel_down_sample(voxel)
+    total = len(scene.points)
+    for _ in range(PLANE_MAX):
+        if len(scene.points) < MIN_FRAME_POINTS:
+            break
+        o3d.utility.random.seed(SEED)
+        _, inliers = scene.segment_plane(PLANE_DISTANCE_VOXELS * voxel, 3, 1000)
+        if len(inliers) < PLANE_SHARE * total:
+            break
+        scene = scene.select_by_index(inliers, invert=True)
+    return np.asarray(scene.points)
+
+
+def locate_instances(
+    frame_points: np.ndarray,
+    reference_points: np.ndarray,
+    count: int,
+    viewpoint: np.ndarray | None = None,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Poses ``scene = R @ model + t`` of up to ``count`` instances of one reference in a whole
+    frame: the frame thinned to the reference's voxel (``FRAME_VOXEL_MIN`` at least) and its
+    large planes set aside, its FPFH computed once; then per instance RANSAC on FPFH matches
+    (the reference onto what is left of the frame) and point-to-plane ICP, and the frame's
+    points the placed reference explains taken out before the next instance."""
+    from scipy.spatial import cKDTree
+
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    registration = o3d.pipelines.registration
+    reference = np.asarray(reference_points, dtype=np.float64)
+    scale = float(np.linalg.norm(reference - reference.mean(axis=0), axis=1).max())
+    voxel = max(VOXEL_SCALES * scale, FRAME_VOXEL_MIN)
+    _, ref_down, ref_feature = _prepare(reference, voxel)
+    ref_full = _cloud(reference)
+    scene = _thin_frame(frame_points, voxel)
+    if len(scene) < MIN_FRAME_POINTS:
+        return []
+    cloud, _, _ = _prepare(scene, voxel, viewpoint)  # the thinned frame with its normals
+    feature = o3d.pipelines.registration.compute_fpfh_feature(
+        cloud,
+        o3d.geometry.KDTreeSearchParamHybrid(
+            radius=FEATURE_RADIUS_VOXELS * voxel, max_nn=FEATURE_MAX_NN
+        ),
+    )
+    features = np.asarray(feature.data)
+    left = np.arange(len(scene))
+    distance = RANSAC_DISTANCE_VOXELS * voxel
+    poses = []
+    for _ in range(count):
+        if len(left) < MIN_FRAME_POINTS:
+            break
+        o3d.utility.random.seed(SEED)
+        target = cloud.select_by_index(left.tolist())
+        target_feature = registration.Feature()
+        target_feature.data = features[:, left]
+        coarse = registration.registration_ransac_based_on_feature_matching(
+            ref_down,
+            target,
+            ref_feature,
+            target_feature,
+            True,  # mutual filter
+            distance,
+            registration.TransformationEstimationPointToPoint(False),
+            RANSAC_N,
+            [
+                registration.CorrespondenceCheckerBasedOnEdgeLength(RANSAC_EDGE_LENGTH),
+                registration.CorrespondenceCheckerBasedOnDistance(distance),
+            ],
+            registration.RANSACConvergenceCriteria(RANSAC_MAX_ITERATIONS, RANSAC_CONFIDENCE),
+        )
+        fine = registration.registration_icp(
+            ref_full,
+            target,
+            ICP_DISTANCE_VOXELS * voxel,
+            coarse.transformation,
+            registration.TransformationEstimationPointToPlane(),
+            registration.ICPConvergenceCriteria(max_iteration=ICP_MAX_ITERATIONS),
+        )
+        pose = np.asarray(fine.transformation)
+        poses.append((pose[:3, :3].copy(), pose[:3, 3].copy()))
+        placed = reference @ pose[:3, :3].T + pose[:3, 3]
+        near, _ = cKDTree(placed).query(scene[left], distance_upper_bound=EXPLAINED_VOXELS * voxel)
+        left = left[~np.isfinite(near)]
+    return poses

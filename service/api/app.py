@@ -22,7 +22,7 @@ from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
-from prometheus_client import CollectorRegistry, Gauge
+from prometheus_client import CollectorRegistry, Counter, Gauge
 from prometheus_fastapi_instrumentator import Instrumentator
 from starlette.exceptions import HTTPException
 from starlette.routing import Match
@@ -32,9 +32,15 @@ from service.api import auth, logs, startup
 from service.api.dependencies import Loading, NotReady
 from service.api.limiter import Busy, Limiter, TimedOut
 from service.api.recent import RecentAlignments
-from service.api.routes import align, alignments, gallery, health, points, references
+from service.api.routes import align, alignments, detect, gallery, health, points, references
 from service.api.routes.common import UnsupportedMediaType
-from service.api.schemas import AlignOptions, AlignRequest, ReferenceRequest
+from service.api.schemas import (
+    AlignOptions,
+    AlignRequest,
+    DetectOptions,
+    DetectRequest,
+    ReferenceRequest,
+)
 from service.api.uploads import cloud_upload_schema
 from service.engine.engine import Engine
 from service.engine.mapping import Mapper
@@ -106,6 +112,7 @@ def create_app(
     app.state.recent = RecentAlignments(settings.recent_alignments)
     routers = (
         align.router,
+        detect.router,
         points.router,
         alignments.router,
         references.router,
@@ -347,6 +354,12 @@ def _add_metrics(app: FastAPI) -> None:
     app.state.metrics_references = Gauge(
         "dpc_references", "References in the gallery", registry=registry
     )
+    app.state.metrics_detections = Counter(
+        "dpc_detections",
+        "Instances POST /detect answered, by verdict",
+        ["verdict"],
+        registry=registry,
+    )
     writes = Gauge(
         "dpc_writes_in_progress",
         "Registrations, deletions, restores and imports being worked on",
@@ -385,7 +398,7 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
     for name in ("HTTPValidationError", "ValidationError"):
         schemas.pop(name, None)
     _document_auth(document, app.state.settings)
-    for model in (AlignRequest, ReferenceRequest):
+    for model in (AlignRequest, DetectRequest, ReferenceRequest):
         schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
         schemas.update(schema.pop("$defs", {}))
         schemas[model.__name__] = schema
@@ -427,5 +440,10 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
     options["candidates"]["description"] += " (repeat the field for each name)"
     schemas["CloudUpload"] = cloud_upload_schema("CloudUpload")
     schemas["AlignUpload"] = cloud_upload_schema("AlignUpload", options)
+    options = DetectOptions.model_json_schema()["properties"]
+    options["viewpoint"] = {"type": "string", "description": "x,y,z: where the camera was"}
+    options["roi"] = {"type": "string", "description": "min_x,min_y,min_z,max_x,max_y,max_z"}
+    options["candidates"]["description"] += " (repeat the field for each name)"
+    schemas["DetectUpload"] = cloud_upload_schema("DetectUpload", options)
     app.openapi_schema = document
     return document

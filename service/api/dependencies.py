@@ -2,8 +2,7 @@
 
 Routes that need the gallery answer 503 until it has loaded. Each is ``async`` (and so is
 ``auth.authorize``): FastAPI runs a plain function dependency in a worker thread, a hop each
-for the six that ``/align`` needs; on the event loop, HTTP's share of an ``/align`` went from
-3.1-3.2 to 2.6-2.8 ms (median, 400 requests, two servers of each run in turn).
+(docs/decisions.md#speed).
 """
 
 from __future__ import annotations

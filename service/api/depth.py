@@ -17,6 +17,7 @@ from pathlib import PurePath
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from service.api.clouds import Cloud
 from service.api.schemas import DepthCamera
 from service.errors import InvalidPoints
 
@@ -29,6 +30,14 @@ def depth_points(
     depth: np.ndarray, camera: DepthCamera, mask: np.ndarray | None, max_points: int
 ) -> np.ndarray:
     """The (N, 3) points of the pixels with a depth (and in the mask), in the camera's frame."""
+    return depth_cloud(depth, camera, mask, max_points).points
+
+
+def depth_cloud(
+    depth: np.ndarray, camera: DepthCamera, mask: np.ndarray | None, max_points: int
+) -> Cloud:
+    """The points of the pixels with a depth (and in the mask), in the camera's frame, with
+    each one's pixel in the image's grid."""
     scale = camera.depth_scale or (MILLIMETRES if depth.dtype.kind in "iu" else 1.0)
     z = depth.astype(np.float64) * scale
     valid = np.isfinite(z) & (z > 0)
@@ -49,7 +58,8 @@ def depth_points(
     z = z[rows, columns]
     x = (columns - camera.cx) * z / camera.fx
     y = (rows - camera.cy) * z / camera.fy
-    return np.stack([x, y, z], axis=1)
+    index = rows.astype(np.int64) * depth.shape[1] + columns
+    return Cloud(np.stack([x, y, z], axis=1), index, (depth.shape[0], depth.shape[1]))
 
 
 def read_image(data: bytes, filename: str | None, what: str) -> np.ndarray:

@@ -17,6 +17,7 @@ from pathlib import PurePath
 import numpy as np
 import trimesh
 
+from service.api.clouds import Cloud, organized
 from service.api.pcd import read_pcd
 from service.engine.sampling import MeshError, load_mesh, sample_surface_faces
 from service.errors import InvalidPoints
@@ -32,6 +33,12 @@ class Upload:
     points: np.ndarray  # (N, 3), not yet validated
     mesh: trimesh.Trimesh | None = None
     face_index: np.ndarray | None = None  # the face each point was sampled on
+    index: np.ndarray | None = None  # an organized cloud's: each point's pixel
+    shape: tuple[int, int] | None = None  # ... and its grid (height, width)
+
+    @classmethod
+    def of(cls, cloud: Cloud) -> Upload:
+        return cls(cloud.points, index=cloud.index, shape=cloud.shape)
 
 
 def read_points(
@@ -50,9 +57,9 @@ def read_upload(
         raise InvalidPoints("the uploaded file is empty")
     kind = file_kind(data, filename)
     if kind == ".npy":
-        return Upload(read_npy(data))
+        return Upload.of(read_npy(data, max_points))
     if kind == ".pcd":
-        return Upload(read_pcd(data, max_points))
+        return Upload.of(read_pcd(data, max_points))
     if kind == ".ply" and not ply_has_faces(data):
         return Upload(read_ply_cloud(data))
     try:
@@ -86,19 +93,22 @@ def file_kind(data: bytes, filename: str | None) -> str:
     )
 
 
-def read_npy(data: bytes) -> np.ndarray:
-    """An .npy array of shape (N, 3), numbers; never unpickles."""
+def read_npy(data: bytes, max_points: int) -> Cloud:
+    """An .npy array of shape (N, 3), numbers, or an organized frame of shape (H, W, 3) whose
+    missing pixels are NaN or infinity; never unpickles."""
     try:
         array = np.load(io.BytesIO(data), allow_pickle=False)
     except Exception as error:  # object arrays (need pickle), bad headers, truncated data
         raise InvalidPoints(f"the NPY file is unreadable: {error}") from error
     if not isinstance(array, np.ndarray):
         raise InvalidPoints("the NPY file holds no array")
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise InvalidPoints(f"the NPY array has shape {array.shape}, not (N, 3)")
+    if array.ndim not in (2, 3) or array.shape[-1] != 3:
+        raise InvalidPoints(f"the NPY array has shape {array.shape}, not (N, 3) or (H, W, 3)")
     if array.dtype.kind not in "iuf":
         raise InvalidPoints(f"the NPY array holds {array.dtype}, not numbers")
-    return array
+    if array.ndim == 3:
+        return organized(array.astype(np.float64, copy=False), max_points, "NPY frame")
+    return Cloud(array)
 
 
 def ply_has_faces(data: bytes) -> bool:

@@ -4,7 +4,9 @@ pypcd4 trusts the header, so the header is read first (by pypcd4's own ``MetaDat
 to what the file can hold before the data is: no more than ``max_points`` points, a binary body
 as long as the header says, a compressed block that decompresses to exactly the points' bytes.
 NaN marks a point without a return in PCL's clouds (an organised cloud's empty pixels), so
-points with a NaN coordinate are dropped; infinity is left for the validation to refuse.
+points with a NaN coordinate are dropped; infinity is left for the validation to refuse, but
+in an organized cloud (HEIGHT > 1) it is a missing pixel too, and the grid is kept
+(``service.api.clouds``): only its valid points count against the limit.
 """
 
 from __future__ import annotations
@@ -16,16 +18,20 @@ import numpy as np
 from pydantic import ValidationError
 from pypcd4 import Encoding, MetaData, PointCloud
 
+from service.api.clouds import Cloud, organized
 from service.errors import InvalidPoints
 
 HEADER_LINES = 10  # VERSION FIELDS SIZE TYPE COUNT WIDTH HEIGHT VIEWPOINT POINTS DATA
 MAX_VALUES = 4096  # values one point may carry (PCL's largest descriptor has 1,980)
+MAX_PIXELS = 4096 * 4096  # an organized cloud's grid, valid pixels or not
 
 
-def read_pcd(data: bytes, max_points: int) -> np.ndarray:
-    """The x y z of the points of a PCD file, (N, 3), without the NaN points."""
+def read_pcd(data: bytes, max_points: int) -> Cloud:
+    """The x y z of the points of a PCD file, (N, 3), without the NaN points; an organized
+    one's valid pixels, with where each lies in its grid."""
     metadata, offset = read_header(data)
-    check_fits(metadata, data[offset:], max_points)
+    grid = metadata.height > 1 and metadata.width * metadata.height == metadata.points
+    check_fits(metadata, data[offset:], MAX_PIXELS if grid else max_points)
     try:
         cloud = PointCloud.from_fileobj(io.BytesIO(data))
         table = cloud.pc_data
@@ -37,7 +43,9 @@ def read_pcd(data: bytes, max_points: int) -> np.ndarray:
             f"the PCD data holds {len(rows)} points, the header's POINTS says {metadata.points}"
         )
     points = np.stack([rows[axis] for axis in "xyz"], axis=1)
-    return points[~np.isnan(points).any(axis=1)]
+    if grid:
+        return organized(points.reshape(metadata.height, metadata.width, 3), max_points, "PCD")
+    return Cloud(points[~np.isnan(points).any(axis=1)])
 
 
 def read_header(data: bytes) -> tuple[MetaData, int]:

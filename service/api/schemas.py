@@ -1,4 +1,4 @@
-"""Request and response bodies of the HTTP contract (shared/API.md), as pydantic models.
+"""Request and response bodies of the HTTP contract (docs/api.md), as pydantic models.
 
 They are the OpenAPI document a client generator reads. The routes validate the small fields
 with these models and the (possibly 200,000-long) point lists with ``service.api.validation``.
@@ -57,6 +57,49 @@ class AlignOptions(BaseModel):
 
 
 class AlignRequest(AlignOptions):
+    points: Points
+
+
+class Box(BaseModel):
+    """An axis-aligned box in the frame's coordinates."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    min: Vector3
+    max: Vector3
+
+    @field_validator("max")
+    @classmethod
+    def _not_empty(cls, high: list[float], info) -> list[float]:
+        low = info.data.get("min")
+        if low is not None and any(h < lo for lo, h in zip(low, high, strict=True)):
+            raise ValueError("every coordinate of max must be at least that of min")
+        return high
+
+
+class DetectOptions(BaseModel):
+    """What ``POST /detect`` takes besides the frame."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    candidates: list[ReferenceName] | None = Field(
+        None, min_length=1, description="look only for these references"
+    )
+    min_confidence: float | None = Field(
+        None, ge=0, le=1, description="below it the verdict is never 'match' (default: server's)"
+    )
+    viewpoint: Vector3 | None = Field(
+        None,
+        description="where the camera was, [x, y, z] in the frame's coordinates (default "
+        "[0, 0, 0]: a frame in its camera's coordinates)",
+    )
+    max_instances: int = Field(20, ge=1, le=200, description="detections answered, at most")
+    roi: Box | None = Field(None, description="only the points inside this box are searched")
+
+    _finite = field_validator("viewpoint")(AlignOptions._finite.__func__)
+
+
+class DetectRequest(DetectOptions):
     points: Points
 
 
@@ -127,6 +170,45 @@ class AlignResponse(BaseModel):
     points_set_aside: int = Field(
         0, description="observed points left out as a support plane, stray points or clutter"
     )
+
+
+class DetectionOut(BaseModel):
+    """One instance of a registered part in the frame."""
+
+    label: str
+    verdict: Literal["match", "uncertain", "no_match"] = Field(
+        description="only 'match' is safe to act on"
+    )
+    confidence: float | None = Field(
+        None, description="estimated probability that label and pose (ADD-S < 0.1) are right"
+    )
+    rotation: Matrix3 = Field(description="R of scene_point = R @ model_point + t")
+    translation: Vector3 = Field(description="t of scene_point = R @ model_point + t")
+    transform: Matrix4 = Field(description="[[R, t], [0, 0, 0, 1]]")
+    alignment_error: float = Field(description="mean distance of its points to the reference")
+    alignment_error_normalized: float = Field(description="alignment_error / the scale")
+    reasons: list[str] = Field(description="why the verdict is not 'match', and what to change")
+    ambiguous: bool = Field(description="other poses, not related by symmetry, fit alike")
+    alternatives: list[AlternativePose]
+    symmetry: dict = Field(description="the part's symmetry, as GET /references/{name} gives it")
+    num_points: int = Field(description="how many of the frame's points it explains")
+    indices: list[int] = Field(
+        description="the points it explains: indices into the request's points (for an "
+        "organized frame, the pixel index row * width + col)"
+    )
+
+
+class DetectResponse(BaseModel):
+    detections: list[DetectionOut] = Field(description="best first, by confidence")
+    num_points: int = Field(description="the frame's valid points (inside the roi, if given)")
+    unexplained: int = Field(
+        description="of those, neither on a support (table, bin) nor explained by a detection"
+    )
+    supports: list[Row4] = Field(
+        description="planes [nx, ny, nz, d] (n . x = d) set aside as supports, the first the "
+        "one the parts rest on"
+    )
+    timings_ms: dict[str, float] = Field(description="per stage, and 'total'")
 
 
 class SelfCheck(BaseModel):

@@ -18,7 +18,8 @@ from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException
 
 from service.api import depth
-from service.api.parsers import read_points
+from service.api.clouds import Cloud
+from service.api.parsers import read_upload
 from service.api.routes.common import invalid, known_fields, parse
 from service.api.schemas import DepthCamera
 from service.api.validation import validate_points
@@ -102,6 +103,13 @@ async def read_parts(
 def form_points(form: Form, settings: Settings) -> tuple[np.ndarray, list[float] | None]:
     """The checked points of the form's ``file`` (float32), and the viewpoint the file
     implies: the origin for a depth image, else None."""
+    cloud, viewpoint = form_cloud(form, settings)
+    return cloud.points, viewpoint
+
+
+def form_cloud(form: Form, settings: Settings) -> tuple[Cloud, list[float] | None]:
+    """The form's ``file`` as a checked cloud (float32 points, and an organized frame's
+    pixels), and the viewpoint the file implies: the origin for a depth image, else None."""
     data, filename = form.files["file"]
     camera = {name: form.value(name) for name in CAMERA_FIELDS if name in form.fields}
     mask = form.files.get("mask")
@@ -113,12 +121,14 @@ def form_points(form: Form, settings: Settings) -> tuple[np.ndarray, list[float]
             )
         image = depth.read_depth(data, filename)
         keep = None if mask is None else depth.read_image(*mask, "mask")
-        points = depth.depth_points(image, parse(DepthCamera, camera), keep, limits.max_points)
+        cloud = depth.depth_cloud(image, parse(DepthCamera, camera), keep, limits.max_points)
         viewpoint = ORIGIN
     else:
-        points = read_points(data, filename, settings.gallery.reference_points, limits.max_points)
+        upload = read_upload(data, filename, settings.gallery.reference_points, limits.max_points)
+        cloud = Cloud(upload.points, upload.index, upload.shape)
         viewpoint = None
-    return validate_points(points, limits.min_points, limits.max_points), viewpoint
+    points = validate_points(cloud.points, limits.min_points, limits.max_points)
+    return Cloud(points, cloud.index, cloud.shape), viewpoint
 
 
 def cloud_upload_schema(title: str, extra: dict[str, Any] | None = None) -> dict[str, Any]:

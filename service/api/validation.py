@@ -1,4 +1,5 @@
-"""Points from a caller, checked: every bad-points class of API.md becomes one ``InvalidPoints``.
+"""Points from a caller, checked: every bad-points class of docs/api.md becomes one
+``InvalidPoints``.
 
 The checks run on plain Python lists (what ``orjson.loads`` gives) without a per-point Python
 loop, so a 200,000-point body is checked in a few tens of milliseconds.

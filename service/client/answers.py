@@ -1,7 +1,7 @@
 """The service's answers as Python values: numpy for matrices, dataclasses for the rest.
 
 Each keeps the answer as the service sent it (``raw``), so fields added by a newer service
-are never lost; ``from_answer`` reads only the contract's names (shared/API.md).
+are never lost; ``from_answer`` reads only the contract's names (docs/api.md).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """What the client raises: one exception type per kind of refusal, each with the service's words.
 
-Every error answer of the service is ``{"detail": "..."}`` (shared/API.md); the exception keeps
+Every error answer of the service is ``{"detail": "..."}`` (docs/api.md); the exception keeps
 ``status``, ``detail`` (what to change), ``request_id`` (to find the request in the service's
 log) and, for a 503, ``retry_after`` in seconds.
 """

@@ -52,3 +52,25 @@ class Alignment:
     alike: float = 0.0  # the best fit x coverage of another, non-equivalent pose of the part
     size_ratio: float = 1.0  # the observed radius over the part's scale
     points: int = 0  # observed points the answer rests on
+
+
+@dataclass
+class Detection:
+    """One instance of a registered part in a frame: the chain's answer for it, the points it
+    explains (indices into the request's points: an organized frame's pixels) and the part's
+    symmetry, as ``GET /references/{name}`` describes it."""
+
+    answer: Alignment
+    indices: np.ndarray  # (M,) int
+    symmetry: dict
+
+
+@dataclass
+class SceneAnswer:
+    """What ``Engine.detect`` answers for a frame."""
+
+    detections: list[Detection]  # best first: by confidence
+    num_points: int  # the frame's valid points (inside the roi)
+    unexplained: int  # of those, not set aside as a support nor explained by a detection
+    supports: list[np.ndarray]  # (4,) planes n . x = d set aside, the first the parts rest on
+    timings_ms: dict[str, float] = field(default_factory=dict)

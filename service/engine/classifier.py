@@ -1,4 +1,4 @@
-"""Step 3b: the linear classifier of eq. (4) over the registered references.
+"""Step 4, classify: the linear classifier of eq. (4) over the registered references.
 
 ``y_i = w_i . x + b_i`` on the flattened grid ``x``; the reported score is
 eq. (4)'s normalisation, each class's positive output over the sum of them.
@@ -25,8 +25,8 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from service.engine.grid import GRID_SIZE
+from service.engine.tuning import POOL, VIEW_POOL
 
-POOL = 2  # bins pooled per side after smoothing
 GRAM_ROWS = 2048  # views multiplied at once in ``view_gram``: 16 MB of float64 at d = 1024
 EPSILON = 1e-9  # a variance below this share of the mean square feature is rounding residue
 
@@ -109,9 +109,6 @@ def classifier_input(grids: np.ndarray, blur: float) -> np.ndarray:
     return (
         grids.reshape(len(grids), half, POOL, half, POOL).sum(axis=(2, 4)).reshape(len(grids), -1)
     )
-
-
-VIEW_POOL = 4  # nearest-view features pool the smoothed grid 4x4 (to 16x16 = 256 values)
 
 
 def view_features(grids: np.ndarray, blur: float) -> np.ndarray:

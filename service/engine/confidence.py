@@ -1,4 +1,4 @@
-"""Step 9: how far to trust an answer: a calibrated confidence, a verdict and its reasons.
+"""Step 8, decide: how far to trust an answer: a calibrated confidence, a verdict and its reasons.
 
 A robot acts on every answer, so the engine says, besides the label and the pose, the
 probability that both are right (the right part, ADD-S < 0.1 of its diameter). It is a

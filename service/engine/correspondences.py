@@ -1,4 +1,4 @@
-"""Step 4a: pair observed and reference points that land on the same 2-D coordinate.
+"""Step 5, hypothesise: pair observed and reference points that land on the same 2-D coordinate.
 
 The mapping is meant to send a surface point to the same 2-D coordinate in any
 pose, so each observed point's nearest reference point in mapped space is its

@@ -10,7 +10,7 @@ past the grid's edge the edge voxel answers, and the distance stays exact to the
 A point may lie nearer to another sample than to its voxel centre's, by at most the voxel's
 diagonal; measured on the object set, the distance differs from a KD-tree's by less than half a
 voxel for 99 % of the points near the surface (tests/test_surface.py), and point-to-plane
-refinement does not see the difference (README, "Precision").
+refinement does not see the difference (docs/decisions.md#distance-field).
 """
 
 from __future__ import annotations
@@ -21,8 +21,7 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import cKDTree
 
-RESOLUTION = 40  # voxels along the reference's longest side, margins included
-MARGIN = 0.3  # the grid reaches this share of the scale beyond the reference's bounding box
+from service.engine.tuning import FIELD_MARGIN, FIELD_RESOLUTION
 
 
 @dataclass(frozen=True)
@@ -36,15 +35,15 @@ class DistanceField:
         cls,
         points: np.ndarray,
         scale: float,
-        resolution: int = RESOLUTION,
+        resolution: int = FIELD_RESOLUTION,
         tree: cKDTree | None = None,
     ) -> DistanceField:
         """The field of a reference cloud (at most 65,535 points)."""
         points = np.asarray(points, dtype=np.float64)
         if len(points) > np.iinfo(np.uint16).max:
             raise ValueError("a distance field indexes at most 65,535 points")
-        low = points.min(axis=0) - MARGIN * scale
-        high = points.max(axis=0) + MARGIN * scale
+        low = points.min(axis=0) - FIELD_MARGIN * scale
+        high = points.max(axis=0) + FIELD_MARGIN * scale
         voxel = float((high - low).max() / resolution)
         shape = np.maximum(np.ceil((high - low) / voxel).astype(int), 1)
         origin = low + voxel / 2

@@ -1,25 +1,28 @@
 """The engine: recognise a registered object in a cloud and estimate its pose.
 
-``Engine.align`` is the paper's chain, one step a block: normalise -> map to 2-D (ONNX) ->
-grid -> classify (eq. 4, and the rendered views whose grids look most alike) -> hypothesise
-poses -> verify (fit x coverage) -> refine (point-to-plane ICP) -> decide -> measure the fit.
-It runs in two passes: first the whole part (eq. 4's candidates, whole-reference hypotheses),
-which a full 360-degree cloud passes at once; then, unless that found an excellent fit, single
-views (the candidates and view hypotheses the rendered views propose), which is what a depth
-camera posts. The gallery is an immutable snapshot swapped whole on every change, so any
-number of threads may align while one registers or removes a reference.
+``Engine.align`` is the paper's chain, one call a step:
 
-Steps 4-6 for one query (hypothesise, verify, refine; the best pose's flips, near-symmetries
-and finishing) are ``search.Search``; a reference's derived state and the gallery's snapshot
-``entry``; the answer's types ``answer``; the reasons an observation's size gives ``units``.
+0. set aside the surroundings (the table under the part, stray points): one or two readings;
+1. normalise: the network's sample of a reading (centred and scaled in ``map``);
+2. map every point to 2-D with the network (ONNX);
+3. grid: bin the mapped points into the 64x64 grid;
+4. classify: eq. (4)'s scores, the candidate parts of a plausible size ranked by them (and,
+   for single views, the parts whose rendered views' grids look most like the observation's);
+5. hypothesise poses of each candidate, 6. verify them (fit x coverage), 7. refine the best
+   (point-to-plane ICP), pass by pass (``search.Search``): the whole part, single views, the
+   mapped pairs, until one fits excellently; then the best pose's flips and near-symmetries;
+8. decide: the best fit over every candidate and hypothesis, its canonical pose, the poses
+   that fit alike, the alignment error; then the calibrated confidence and the verdict.
+
+The gallery is an immutable snapshot swapped whole on every change, so any number of threads
+may align while one registers or removes a reference. The engine's terms are defined in
+docs/decisions.md, "Glossary".
 """
 
 from __future__ import annotations
 
 import threading
-import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 
 import numpy as np
 import trimesh
@@ -28,32 +31,53 @@ from scipy.spatial.transform import Rotation
 
 from service.engine import confidence
 from service.engine.alignment import alignment_error
-from service.engine.answer import Alignment, AlternativePose
+from service.engine.answer import Alignment, AlternativePose, Detection, SceneAnswer
 from service.engine.classifier import LinearClassifier, view_features, view_gram
 from service.engine.confidence import Calibration
 from service.engine.distance_field import DistanceField
 from service.engine.entry import Entry, Snapshot, stored_surface
+from service.engine.fits import Fit
+from service.engine.frame import Frame
 from service.engine.grid import grid
 from service.engine.icp import Surface
 from service.engine.mapping import Mapper
 from service.engine.normalize import has_extent, normalize, radius, subsample
 from service.engine.normals import estimate_normals, mesh_normals, orient_by_views
 from service.engine.principal_axes import flatness
+from service.engine.projection import DepthImage
+from service.engine.query import Observed, Query, Ranking, Stopwatch
 from service.engine.reference import Reference
-from service.engine.search import (
+from service.engine.scene import Instance, frame_indices, near_surface, settle_claims
+from service.engine.search import Plan, Search, excellent, sure_first
+from service.engine.segments import adjacent, segments
+from service.engine.supports import Noise, apply_supports, set_aside_supports
+from service.engine.surroundings import Reading, as_is, set_aside_surroundings
+from service.engine.symmetry import find_symmetry
+from service.engine.templates import likeliest, place_views
+from service.engine.tuning import (
     ALIKE,
+    CLAIM_TOLERANCE,
     DIFFERENT_DEG,
+    FLAT,
+    INSTANCE_FLOOR,
+    JOIN_PIXELS,
+    KEEP_SHARE,
     MAX_ALTERNATIVES,
+    MAX_TRIES,
+    MIN_EXPLAINED,
+    MIN_SEGMENT,
+    NOISE_TOLERANCES,
+    POOR_FIT,
     RIGHT_EITHER_WAY,
+    SEGMENT_POINTS,
+    TEMPLATE_PARTS,
+    TEMPLATE_SIZES,
+    THIN_PER_SCALE,
+    VIEW_POINTS,
     WHOLE_REFINED,
     WHOLE_SCREENED,
-    Search,
-    excellent,
-    sure_first,
 )
-from service.engine.surroundings import set_aside_surroundings
-from service.engine.symmetry import find_symmetry
-from service.engine.units import POOR_FIT, UNIT_FACTORS, nearest_sized, size_reason, unit_ratio
+from service.engine.units import UNIT_FACTORS, nearest_sized, size_reason, unit_ratio
 from service.engine.views import (
     camera_at,
     directions,
@@ -66,41 +90,7 @@ from service.engine.visibility import random_camera, visible_points
 from service.errors import EmptyGallery, UnknownReference
 from service.settings import EngineSettings
 
-
-@dataclass
-class Query:
-    """What one ``align`` call asked, and its clock."""
-
-    snapshot: Snapshot
-    allowed: np.ndarray  # the classifier rows the caller allows
-    sources: tuple[str, ...]
-    top_k: int | None
-    refine: bool
-    viewpoint: np.ndarray | None
-    rng: np.random.Generator
-    clock: Stopwatch
-
-
-VIEW_POINTS = 512  # a rendered view's grid is made of at most this many of its points
 SELF_CHECK_THREADS = 2  # renders of the registration check aligned at once
-FLAT = 0.03  # an observation this flat (smallest over largest principal spread) is one face
-
-
-class Stopwatch:
-    """Milliseconds per step, in the order the steps ran."""
-
-    def __init__(self):
-        self.timings: dict[str, float] = {}
-        self.began = self.last = time.perf_counter()
-
-    def lap(self, step: str) -> None:
-        now = time.perf_counter()
-        self.timings[step] = self.timings.get(step, 0.0) + (now - self.last) * 1e3
-        self.last = now
-
-    def total(self) -> dict[str, float]:
-        self.timings["total"] = (time.perf_counter() - self.began) * 1e3
-        return {k: round(v, 3) for k, v in self.timings.items()}
 
 
 class Engine:
@@ -314,7 +304,7 @@ class Engine:
             raise UnknownReference(f"no reference named {name!r}") from None
 
     def recognise(self, mapped: np.ndarray) -> tuple[str, float]:
-        """Step 3 alone: the label eq. (4) gives a mapped cloud, and its score."""
+        """Steps 3-4 alone: the label eq. (4) gives a mapped cloud, and its score."""
         classifier = self._snapshot.classifier
         if classifier is None:
             raise EmptyGallery("no reference is registered: register one with POST /references")
@@ -337,13 +327,39 @@ class Engine:
         hypotheses: tuple[str, ...] | None = None,
         viewpoint: np.ndarray | None = None,
         min_confidence: float | None = None,
+        surroundings: bool = True,
+        noise: float = 0.0,
     ) -> Alignment:
         """Recognise and pose the object in ``points``; ``viewpoint`` is where the sensor was,
-        in the cloud's frame, if known; below ``min_confidence`` the verdict is never "match"."""
+        in the cloud's frame, if known; below ``min_confidence`` the verdict is never "match".
+        Without ``surroundings``, nothing is set aside (a frame's segment); ``noise``: the
+        sensor's depth noise where the part lies, if known (``Query.tolerance``)."""
+        query = self.query(candidates, top_k, refine, hypotheses, viewpoint)
+        query.noise = noise
+        scene = np.asarray(points, dtype=np.float64)
+        if surroundings:
+            readings = self.set_aside(query, scene)  # 0
+        else:
+            readings = [as_is(scene, np.random.default_rng(self.settings.seed))]
+        answer, seen = None, scene
+        for reading in readings:
+            if answer is not None and answer.fit * answer.coverage >= self.settings.excellent:
+                break
+            found = self.align_reading(query, reading)  # 1-8
+            found.points_set_aside = reading.set_aside
+            if answer is None or found.fit * found.coverage > answer.fit * answer.coverage:
+                answer, seen = found, reading.points
+        if answer.verdict != "no_match":  # 8. How far to trust it.
+            self.judge(answer, min_confidence, query, flatness(seen))
+        answer.timings_ms = query.clock.total()
+        return answer
+
+    def query(self, candidates, top_k, refine, hypotheses, viewpoint) -> Query:
+        """What an ``align`` call asks, on the gallery's snapshot of now."""
         snapshot, settings = self._snapshot, self.settings
         if not snapshot.entries:
             raise EmptyGallery("no reference is registered: register one with POST /references")
-        query = Query(
+        return Query(
             snapshot,
             self._candidate_rows(snapshot, candidates),
             hypotheses or settings.hypotheses,
@@ -353,34 +369,166 @@ class Engine:
             np.random.default_rng(settings.seed),
             Stopwatch(),
         )
-        scene = np.asarray(points, dtype=np.float64)
-        # 0. Set aside the table, stray points and clutter; more than one reading may be tried.
-        readings = set_aside_surroundings(
-            scene, np.random.default_rng(settings.seed), query.viewpoint
-        )
-        query.clock.lap("surroundings")
-        answer, seen = None, scene
-        for reading in readings:
-            if answer is not None and answer.fit * answer.coverage >= settings.excellent:
-                break
-            found = self._align_reading(query, reading.points, reading.spacing)
-            found.points_set_aside = reading.set_aside
-            if answer is None or found.fit * found.coverage > answer.fit * answer.coverage:
-                answer, seen = found, reading.points
-        if answer.verdict != "no_match":  # 9. How far to trust it.
-            self._judge(answer, min_confidence, query, flatness(seen))
-        answer.timings_ms = query.clock.total()
-        return answer
 
-    def _judge(
+    def set_aside(self, query: Query, scene: np.ndarray) -> list[Reading]:
+        """Step 0: the readings of the observation, the table, stray points and clutter set
+        aside (``surroundings``); more than one may be tried, the first first."""
+        rng = np.random.default_rng(self.settings.seed)
+        readings = set_aside_surroundings(scene, rng, query.viewpoint)
+        query.clock.lap("surroundings")
+        return readings
+
+    def align_reading(self, query: Query, reading: Reading) -> Alignment:
+        """Steps 1-8 on one reading of the observation."""
+        if not has_extent(radius(reading.points), float(np.abs(reading.points).max())):
+            return self._at_one_place(query, reading.points)
+        observed = self.normalise(query, reading)  # 1
+        observed.mapped = self.map(observed.points)  # 2
+        query.clock.lap("map")
+        observed.grid = grid(observed.mapped)  # 3
+        ranking = self.classify(query, observed)  # 4
+        search = Search(self.settings, query, observed)
+        fits = self.search(query, observed, ranking, search)  # 5-7
+        if not fits:  # nothing of a plausible size: no search over the wrong sizes
+            return self._unanswered(query.snapshot, query.allowed, observed.points, ranking.scores)
+        fits.sort(key=lambda f: -f.score)
+        if query.refine:
+            fits = search.finish(fits)  # 7, the best pose
+        return self.decide(query, observed, ranking, search, fits)  # 8
+
+    def normalise(self, query: Query, reading: Reading) -> Observed:
+        """Step 1: the network's sample of the reading (centring and scaling: ``map``)."""
+        scene = reading.points
+        sample = scene[subsample(scene, self.settings.network_points, query.rng)]
+        query.clock.lap("normalize")
+        return Observed(scene, sample, radius(sample), reading.spacing)
+
+    def classify(self, query: Query, observed: Observed) -> Ranking:
+        """Step 4: eq. (4)'s scores of the grid, and the candidates of a plausible size ranked
+        by them; the first ``top_k`` are verified in every pass."""
+        snapshot, settings = query.snapshot, self.settings
+        scores = snapshot.classifier.scores(observed.grid)
+        allowed = query.allowed
+        sized = self._plausible(snapshot.scales[allowed], observed.size, settings.size_ratio)
+        plausible = allowed[sized]
+        ranked = plausible[np.argsort(-scores[plausible], kind="stable")]
+        shortlist = ranked[: query.top_k or settings.top_k]
+        query.clock.lap("classify")
+        return Ranking(scores, ranked, shortlist, sure_first(scores, ranked))
+
+    def search(
+        self, query: Query, observed: Observed, ranking: Ranking, search: Search
+    ) -> list[Fit]:
+        """Steps 5-7, pass by pass until a fit is excellent: the whole part (principal axes),
+        single views (rendered views), the pairs the learned mapping makes."""
+        fits: list[Fit] = []
+        for plan_of in (self._whole_part, self._single_views, self._mapped_pairs):
+            if excellent(fits, self.settings):
+                break
+            plan = plan_of(query, observed, ranking)
+            if plan is None:
+                continue
+            made = search.hypothesise(plan)  # 5
+            found = search.verify(made, plan)  # 6
+            fits += search.refine(found, plan)  # 7
+        return fits
+
+    def _whole_part(self, query: Query, observed: Observed, ranking: Ranking) -> Plan | None:
+        """The shortlist's whole-part hypotheses (principal axes): what a full cloud needs."""
+        if "principal-axes" not in query.sources:
+            return None
+        planned = {int(row): ["principal-axes"] for row in ranking.shortlist}
+        return Plan(planned, WHOLE_REFINED, ranking.first, screened=WHOLE_SCREENED)
+
+    def _single_views(self, query: Query, observed: Observed, ranking: Ranking) -> Plan | None:
+        """The parts whose rendered views' grids look most like the observation's, and the
+        shortlist, from every rendered view of each: what one camera's view needs. Parts
+        only the views propose get their whole-part hypotheses too; more parts are rescued
+        where none fits well."""
+        if "views" not in query.sources:
+            return None
+        shortlist = ranking.shortlist
+        rows = self._nearest_views(
+            query.snapshot, observed.grid, observed.size, query.allowed, query.top_k
+        )
+        rows += [row for row in shortlist if row not in rows]
+        query.clock.lap("classify")
+        whole = ["principal-axes"] if "principal-axes" in query.sources else []
+        planned = {row: ["views", *(whole if row not in shortlist else [])] for row in rows}
+        return Plan(planned, self.settings.refine_best, ranking.first, rescue=True)
+
+    def _mapped_pairs(self, query: Query, observed: Observed, ranking: Ranking) -> Plan | None:
+        """The shortlist posed from the pairs of points the learned mapping makes (RANSAC, or
+        the paper's least squares alone)."""
+        paired = [s for s in query.sources if s in ("mapped", "paper")]
+        if not paired:
+            return None
+        return Plan({row: paired for row in ranking.shortlist}, WHOLE_REFINED)
+
+    def decide(
+        self, query: Query, observed: Observed, ranking: Ranking, search: Search, fits: list[Fit]
+    ) -> Alignment:
+        """Step 8: the best fit x coverage over every candidate and hypothesis, its canonical
+        pose among those its symmetry makes equivalent, the poses that fit alike, and the
+        alignment error on every point of the reading."""
+        snapshot = query.snapshot
+        winner = fits[0]
+        label = snapshot.classifier.labels[winner.row]
+        entry = snapshot.entries[label]
+        rotation, translation = entry.symmetry.canonical(winner.rotation, winner.translation)
+        runner_up = max(
+            (f for f in fits if f.row != winner.row), key=lambda f: f.score, default=None
+        )
+        runner_label = None if runner_up is None else snapshot.classifier.labels[runner_up.row]
+        alike, alternatives = self._alike(entry, fits)
+        query.clock.lap("decide")
+        error = alignment_error(observed.scene, entry.point_tree, rotation, translation)
+        query.clock.lap("measure")
+        return Alignment(
+            label=label,
+            score=float(ranking.scores[winner.row]),
+            rotation=rotation,
+            translation=translation,
+            alignment_error=error,
+            alignment_error_normalized=error / entry.reference.scale,
+            hypothesis=winner.source,
+            candidates=search.candidate_fits(fits, ranking.scores),
+            ambiguous=bool(alternatives),
+            alternatives=alternatives,
+            fit=winner.fit,
+            coverage=winner.coverage,
+            runner_up=0.0 if runner_up is None else runner_up.score,
+            runner_up_label=runner_label,
+            alike=alike,
+            size_ratio=observed.size / entry.reference.scale,
+            points=len(observed.scene),
+        )
+
+    @staticmethod
+    def _alike(entry: Entry, fits: list[Fit]) -> tuple[float, list[AlternativePose]]:
+        """How well the best other refined pose of the winner's part fits (0 when none lies
+        ``RIGHT_EITHER_WAY`` or farther from it), and those that fit alike as alternatives:
+        poses more than ``DIFFERENT_DEG`` apart, symmetry accounted for."""
+        winner, alike, alternatives = fits[0], 0.0, []
+        for other in fits[1:]:
+            if other.row != winner.row or not other.refined:
+                continue
+            if entry.symmetry.distance_deg(other.rotation, winner.rotation) <= DIFFERENT_DEG:
+                continue
+            if other.score > alike and entry.gap(winner, other) >= RIGHT_EITHER_WAY:
+                alike = other.score
+            if other.score >= ALIKE * winner.score and len(alternatives) < MAX_ALTERNATIVES:
+                pose = entry.symmetry.canonical(other.rotation, other.translation)
+                alternatives.append(AlternativePose(*pose, confidence=0.0))
+        return alike, alternatives
+
+    def judge(
         self, answer: Alignment, min_confidence: float | None, query: Query, flat: float
     ) -> None:
-        """Confidence, verdict and reasons of an answer (``service.engine.confidence``).
-        ``flat`` is the observation's ``flatness``: one flat face of a part that is not flat
-        itself fixes neither its turn about the face's normal nor where along the face it
-        lies (a crop or an occlusion draws the outline), so such an answer is never a
-        "match"."""
-        settings = self.settings
+        """Step 8's confidence, verdict and reasons (``service.engine.confidence``). ``flat``
+        is the observation's ``flatness``: one flat face of a part that is not flat itself
+        fixes neither its turn about the face's normal nor where along the face it lies, so
+        such an answer is never a "match"."""
         entry = query.snapshot.entries[answer.label]
         one_face = flat < FLAT <= entry.flatness
         values = confidence.measures(
@@ -398,21 +546,29 @@ class Engine:
             answer.confidence = self.calibration.confidence(values)
             for alternative in answer.alternatives:
                 alternative.confidence = answer.confidence
-            threshold = next(
-                t
-                for t in (min_confidence, settings.accept, self.calibration.accept)
-                if t is not None
-            )
+            threshold = self._threshold(min_confidence)
             if answer.confidence >= threshold and not one_face:
                 answer.verdict, answer.reasons = "match", []
                 return
-            low = answer.confidence < settings.reject_below
+            low = answer.confidence < self.settings.reject_below
             answer.verdict = "no_match" if low else "uncertain"
             reasons = []
             if answer.confidence < threshold:
                 reasons.append(
                     f"the confidence {answer.confidence:.2f} is below the threshold {threshold:.2f}"
                 )
+        answer.reasons = reasons + self._doubts(answer, values, one_face, flat, query)
+
+    def _threshold(self, min_confidence: float | None) -> float:
+        """The confidence of a "match": the request's, else the setting's, else the
+        calibration's own."""
+        chosen = (min_confidence, self.settings.accept, self.calibration.accept)
+        return next(t for t in chosen if t is not None)
+
+    def _doubts(self, answer: Alignment, values, one_face: bool, flat: float, query) -> list[str]:
+        """What makes an answer doubtful, each with what the caller can change."""
+        entry = query.snapshot.entries[answer.label]
+        reasons = []
         if one_face:
             reasons.append(
                 f"the observed points lie on one plane (thickness {flat:.1%} of their extent): "
@@ -422,136 +578,219 @@ class Engine:
         reasons += confidence.reasons(
             answer.label, values, answer.runner_up_label, answer.ambiguous
         )
-        # the part does not explain the cloud, nor does the confidence (if any) say it may:
-        # other units? Only then: the right part seen on its table, some of the table left in
-        # the cloud, fits as poorly (67-77 %), and was told that another unit would fit
+        # other units? Only where nothing says the part may fit: the right part on its table,
+        # some of the table left in, fits as poorly (docs/decisions.md#decide)
         if values["fit"] < POOR_FIT and (answer.verdict == "no_match" or answer.confidence is None):
             size = answer.size_ratio * entry.reference.scale
             hint = self._unit_hint(query.snapshot.scales[query.allowed], size)
             reasons += [hint] if hint else []
-        answer.reasons = reasons
+        return reasons
 
-    def _align_reading(self, query: Query, scene: np.ndarray, spacing: float) -> Alignment:
-        """Steps 1-8 on one reading of the observation."""
-        snapshot, settings, clock, rng = query.snapshot, self.settings, query.clock, query.rng
-        # the strays set aside, what is left lies at one place
-        if not has_extent(radius(scene), float(np.abs(scene).max())):
-            return self._unanswered(
-                snapshot,
-                query.allowed,
-                scene,
-                np.zeros(len(snapshot.classifier.labels)),
-                [
-                    f"the {len(scene)} points left once stray points are set aside lie at one "
-                    "place: there is no shape to recognise; send the part's points"
-                ],
-            )
-        # 1. Normalise: subsample to the network's size (centring, scaling in map()).
-        observed = scene[subsample(scene, settings.network_points, rng)]
-        size = radius(observed)
-        clock.lap("normalize")
-        # 2. Map every point to 2-D with the network.
-        observed_mapped = self.map(observed)
-        clock.lap("map")
-        # 3. Grid and classify (eq. 4) among the references of a plausible size.
-        observed_grid = grid(observed_mapped)
-        scores = snapshot.classifier.scores(observed_grid)
-        allowed = query.allowed
-        plausible = allowed[self._plausible(snapshot.scales[allowed], size, settings.size_ratio)]
-        ranked = plausible[np.argsort(-scores[plausible], kind="stable")]
-        shortlist = ranked[: query.top_k or settings.top_k]
-        clock.lap("classify")
-
-        # 4-6. The whole part: hypotheses from its principal axes, verified, the best refined
-        # (and in each pass the best of eq. (4)'s first choice).
-        search = Search(self, snapshot, observed, observed_mapped, spacing, query, clock)
-        chosen = query.sources
-        whole = [s for s in chosen if s == "principal-axes"]
-        first = sure_first(scores, ranked)
-        fits = search.run(
-            {row: whole for row in shortlist},
-            query.refine,
-            WHOLE_REFINED,
-            first,
-            screened=WHOLE_SCREENED,
+    def _at_one_place(self, query: Query, scene: np.ndarray) -> Alignment:
+        """A no-match answer for a reading whose points, strays set aside, lie at one place."""
+        snapshot = query.snapshot
+        return self._unanswered(
+            snapshot,
+            query.allowed,
+            scene,
+            np.zeros(len(snapshot.classifier.labels)),
+            [
+                f"the {len(scene)} points left once stray points are set aside lie at one "
+                "place: there is no shape to recognise; send the part's points"
+            ],
         )
-        if "views" in chosen and not excellent(fits, settings):
-            # 3b-6. Single views: the parts whose rendered views' grids look most like the
-            # observation's, and eq. (4)'s; hypotheses from every rendered view of each.
-            rows = [*self._nearest_views(snapshot, observed_grid, size, allowed, query.top_k)]
-            rows += [row for row in shortlist if row not in rows]
-            clock.lap("classify")
-            planned = {row: ["views", *(whole if row not in shortlist else [])] for row in rows}
-            fits += search.run(planned, query.refine, settings.refine_best, first, rescue=True)
-        paired = [s for s in chosen if s in ("mapped", "paper")]
-        if paired and not excellent(fits, settings):
-            # 4-6 again with the mapped pairs: what the learned mapping pairs, solved.
-            fits += search.run({row: paired for row in shortlist}, query.refine, WHOLE_REFINED)
-        if not fits:  # nothing of a plausible size: no search over the wrong sizes
-            return self._unanswered(snapshot, allowed, observed, scores)
 
-        # 6b. The best pose, where it fits short of excellent, turned half a turn about each of
-        # the part's principal axes and refined: a view's frame is matched up to the signs of
-        # its axes, and the wrong sign refines into a minimum of its own. Then the best part
-        # turned by each of its near-symmetries, refined: a notch or a cross hole may be all
-        # that tells those poses apart.
-        fits.sort(key=lambda f: -f.score)
-        if query.refine:
-            fits = search.flip(fits)
-            clock.lap("flips")
-            fits = search.resolve_near(fits)
-            clock.lap("near-symmetries")
-            # 6c. The winner's pose finished, where the search's budget stopped short of it.
-            if search.polish(fits[0]):
-                clock.lap("refine")
+    # --- a whole frame ----------------------------------------------------------------
 
-        # 7. Decide: the best fit x coverage over every candidate and hypothesis; its
-        # canonical pose among those its symmetry makes equivalent; other poses that fit alike.
-        winner = fits[0]
-        label = snapshot.classifier.labels[winner.row]
-        entry = snapshot.entries[label]
-        rotation, translation = entry.symmetry.canonical(winner.rotation, winner.translation)
-        others = [f for f in fits if f.row != winner.row]
-        runner_up = max(others, key=lambda f: f.score, default=None)
-        runner_up_label = None if runner_up is None else snapshot.classifier.labels[runner_up.row]
-        alike = 0.0
-        alternatives = []
-        for other in fits[1:]:
-            if other.row != winner.row or not other.refined:
+    def detect(
+        self,
+        frame: Frame,
+        candidates: list[str] | None = None,
+        max_instances: int = 20,
+        roi: tuple[np.ndarray, np.ndarray] | None = None,
+        min_confidence: float | None = None,
+    ) -> SceneAnswer:
+        """Every instance of a registered part in a camera's ``frame``: the supports set
+        aside, the rest split into segments, each searched by the chain until nothing more
+        fits; then one global check among the instances."""
+        query = self.query(candidates, None, True, None, frame.viewpoint)
+        clock = Stopwatch()
+        frame = frame if roi is None else frame.cropped(*roi)
+        scales = self._frame_scales(query, frame)
+        thin = frame.thinned(scales.min() / THIN_PER_SCALE)
+        angle = frame.pixel_angle()
+        clock.lap("thin")
+        keep, supports = set_aside_supports(thin, angle, query.rng)
+        rest = thin.take(keep)
+        camera = DepthImage.of(thin)
+        clock.lap("supports")
+        labels = segments(rest, angle)
+        clock.lap("segments")
+        noise = Noise(supports[0] if supports else None)
+        instances = self._instances(
+            query, rest, labels, (camera, noise), max_instances, min_confidence
+        )
+        clock.lap("instances")
+        instances = settle_claims(instances, len(rest), KEEP_SHARE)
+        clock.lap("global check")
+        return self._scene_answer(frame, supports, angle, instances, noise, clock)
+
+    def _frame_scales(self, query: Query, frame: Frame) -> np.ndarray:
+        """The scales of the references a part in this frame could be: those no larger than
+        the frame (all of them, if none is)."""
+        scales = query.snapshot.scales[query.allowed]
+        size = radius(frame.points) if len(frame) else 0.0
+        fits = scales[scales <= size]
+        return fits if len(fits) else scales
+
+    def _instances(
+        self,
+        query: Query,
+        rest: Frame,
+        labels: np.ndarray,
+        sensor: tuple[DepthImage | None, Noise],
+        max_instances: int,
+        min_confidence: float | None,
+    ) -> list[Instance]:
+        """Each segment, largest first, searched by the chain; an answer that explains
+        ``MIN_EXPLAINED`` of its points is an instance, they are taken out, and the rest of
+        the segment searched again (``MAX_TRIES`` times at most). Then the segments where
+        nothing was found, joined with a neighbour in the image: a part cut in two."""
+        free = np.ones(len(rest), dtype=bool)
+        instances: list[Instance] = []
+        sizes = np.bincount(labels) if len(labels) else np.zeros(0, int)
+        search = lambda region: self._instance(query, rest, region, free, sensor, min_confidence)  # noqa: E731
+        failed = []
+        for segment in np.argsort(-sizes, kind="stable"):
+            if sizes[segment] < MIN_SEGMENT:
+                break
+            for tries in range(MAX_TRIES):
+                region = np.flatnonzero((labels == segment) & free)
+                if len(region) < MIN_SEGMENT or len(instances) >= max_instances:
+                    break
+                found = search(region)
+                if found is None:
+                    failed += [segment] if tries == 0 else []
+                    break
+                instances.append(found)
+                free[found.claimed] = False
+        for a, b in sorted(adjacent(rest, labels, np.array(failed), JOIN_PIXELS)):
+            region = np.flatnonzero(np.isin(labels, (a, b)) & free)
+            if len(region) < MIN_SEGMENT or len(instances) >= max_instances:
                 continue
-            if entry.symmetry.distance_deg(other.rotation, winner.rotation) <= DIFFERENT_DEG:
-                continue
-            if other.score > alike and entry.gap(winner, other) >= RIGHT_EITHER_WAY:
-                alike = other.score
-            if other.score >= ALIKE * winner.score and len(alternatives) < MAX_ALTERNATIVES:
-                alternatives.append(
-                    AlternativePose(
-                        *entry.symmetry.canonical(other.rotation, other.translation), confidence=0.0
-                    )
+            found = search(region)
+            if found is not None:
+                instances.append(found)
+                free[found.claimed] = False
+        return instances
+
+    def _instance(self, query, rest, region, free, sensor, min_confidence) -> Instance | None:
+        """The chain's answer for the points ``region`` of ``rest`` as an instance claiming
+        the free points near its surface; else, the segment may hold several parts touching:
+        the likeliest parts' views placed over it (``templates``), and the chain asked about
+        the points the best placed view explains. None if neither explains enough.
+        ``sensor``: the frame's depth image (if it has one) and its noise."""
+        camera, noise = sensor
+        points = rest.points[region]
+        sigma = noise.at(points, rest.viewpoint)
+        answer = self._segment_answer(query, points, rest.viewpoint, min_confidence, sigma)
+        found = self._claim(query, rest, region, free, answer, sigma)
+        if found is not None:
+            return found
+        spacing = self._spacing(rest)
+        for entry in self._template_parts(query, points, rest.viewpoint, spacing, camera):
+            tolerance = query.tolerance(self.settings.tolerance, entry.reference.scale)
+            tolerance = max(tolerance, NOISE_TOLERANCES * sigma)
+            for pose in place_views(
+                entry, points, rest.viewpoint, spacing, tolerance, query.rng, camera
+            )[:1]:
+                close, _ = near_surface(
+                    points, entry, pose.rotation, pose.translation, CLAIM_TOLERANCE * tolerance
                 )
-        clock.lap("decide")
+                if len(close) < MIN_EXPLAINED:
+                    continue
+                again = self._segment_answer(
+                    query, points[close], rest.viewpoint, min_confidence, sigma
+                )
+                found = self._claim(query, rest, region, free, again, sigma)
+                if found is not None:
+                    return found
+        return None
 
-        # 8. Measure the fit of the winner on every observed point.
-        error = alignment_error(scene, entry.point_tree, rotation, translation)
-        clock.lap("measure")
-        return Alignment(
-            label=label,
-            score=float(scores[winner.row]),
-            rotation=rotation,
-            translation=translation,
-            alignment_error=error,
-            alignment_error_normalized=error / entry.reference.scale,
-            hypothesis=winner.source,
-            candidates=search.candidate_fits(fits, scores),
-            ambiguous=bool(alternatives),
-            alternatives=alternatives,
-            fit=winner.fit,
-            coverage=winner.coverage,
-            runner_up=0.0 if runner_up is None else runner_up.score,
-            runner_up_label=runner_up_label,
-            alike=alike,
-            size_ratio=size / entry.reference.scale,
-            points=len(scene),
+    def _segment_answer(self, query, points, viewpoint, min_confidence, noise) -> Alignment:
+        """The chain's answer for a segment's points (``SEGMENT_POINTS`` of them at most),
+        nothing set aside."""
+        candidates = [query.snapshot.classifier.labels[row] for row in query.allowed]
+        return self.align(
+            points[subsample(points, SEGMENT_POINTS, query.rng)],
+            candidates,
+            viewpoint=viewpoint,
+            min_confidence=min_confidence,
+            surroundings=False,
+            noise=noise,
+        )
+
+    def _template_parts(self, query, points, viewpoint, spacing, camera) -> list[Entry]:
+        """The parts to place over a segment: of those that fit inside it and are not far
+        smaller (``TEMPLATE_SIZES``), the ``TEMPLATE_PARTS`` whose views fit it best."""
+        size = radius(points)
+        low, high = TEMPLATE_SIZES
+        rows = [r for r in query.allowed if low * size <= query.snapshot.scales[r] <= high * size]
+        labels = query.snapshot.classifier.labels
+        entries = [query.snapshot.entries[labels[r]] for r in rows]
+        return likeliest(entries, points, viewpoint, spacing, query.rng, camera, TEMPLATE_PARTS)
+
+    @staticmethod
+    def _spacing(frame: Frame) -> float:
+        """The distance between neighbouring points of a (thinned) frame at its median range."""
+        if not len(frame):
+            return 0.0
+        return frame.pixel_angle() * frame.step * float(np.median(frame.ranges()))
+
+    def _claim(self, query, rest, region, free, answer, noise) -> Instance | None:
+        """``answer`` as an instance claiming the free points near its surface; None if it is
+        no registered part, or explains fewer than ``MIN_EXPLAINED`` of ``region``."""
+        if answer.verdict == "no_match" or (answer.confidence or 0.0) < INSTANCE_FLOOR:
+            return None
+        entry = query.snapshot.entries[answer.label]
+        tolerance = CLAIM_TOLERANCE * max(
+            self.settings.tolerance * entry.reference.scale, NOISE_TOLERANCES * noise
+        )
+        available = np.flatnonzero(free)
+        close, distance = near_surface(
+            rest.points[available], entry, answer.rotation, answer.translation, tolerance
+        )
+        claimed = available[close]
+        if np.isin(claimed, region).sum() < MIN_EXPLAINED:
+            return None
+        return Instance(answer, entry, claimed, distance)
+
+    def _scene_answer(self, frame, supports, angle, instances, noise, clock) -> SceneAnswer:
+        """The detections at the frame's full resolution, best first."""
+        seen = apply_supports(frame, supports, angle)
+        kept = frame.take(seen)
+        sigma = {id(i): noise.at(i.centre[None], frame.viewpoint) for i in instances}
+
+        def tolerance(instance: Instance) -> float:
+            scale = instance.entry.reference.scale
+            return CLAIM_TOLERANCE * max(
+                self.settings.tolerance * scale, NOISE_TOLERANCES * sigma[id(instance)]
+            )
+
+        owned = frame_indices(kept, instances, tolerance)
+        detections = [
+            Detection(i.answer, kept.index[mine], i.entry.symmetry.describe())
+            for i, mine in zip(instances, owned, strict=True)
+        ]
+        detections.sort(key=lambda d: -(d.answer.confidence or 0.0))
+        explained = sum(len(d.indices) for d in detections)
+        clock.lap("explained points")
+        return SceneAnswer(
+            detections,
+            len(frame),
+            int(seen.sum()) - explained,
+            [s.plane for s in supports],
+            clock.total(),
         )
 
     def _nearest_views(
@@ -625,9 +864,8 @@ class Engine:
     def _plausible(scales: np.ndarray, size: float, ratio: tuple[float, float]) -> np.ndarray:
         """Which references' scales could give an observation of this radius.
 
-        The grid is scale-free, but a sensor measures sizes: a full view's radius is the
-        reference's scale within a few per cent, a single camera's view 0.85-1.45 of it
-        (measured on the evaluation's cases), so a size far outside that is another part.
+        The grid is scale-free, but a sensor measures sizes: a size far outside a part's own
+        is another part (docs/decisions.md#classify).
         """
         low, high = ratio
         return (size >= low * scales) & (size <= high * scales)

@@ -15,13 +15,12 @@ from service.engine.icp import Surface
 from service.engine.principal_axes import Frame, flatness
 from service.engine.reference import Reference
 from service.engine.symmetry import Symmetry
+from service.engine.tuning import EXPECTED
 from service.engine.verification import surface_distance
 from service.engine.views import Views
 
 if TYPE_CHECKING:
     from service.engine.search import Fit
-
-EXPECTED = 128  # expected-visible points drawn per view for coverage
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""Step 3a: bin the mapped 2-D coordinates into the paper's 64x64 grid (Sect. 3.3).
+"""Step 3, grid: bin the mapped 2-D coordinates into the paper's 64x64 grid (Sect. 3.3).
 
 Each mapped point adds one unit to its bin. Two choices the paper leaves open:
 - the grid's extent: the paper rounds (u, v) to integers, which ties the grid to

@@ -1,4 +1,4 @@
-"""Step 4: pose hypotheses for one candidate reference, from four sources.
+"""Step 5, hypothesise: pose hypotheses for one candidate reference, from four sources.
 
 - ``views``: the observation's principal frame matched with the frames of the reference's
   rendered views that look most like it (four proper sign flips each); with a viewpoint, only
@@ -25,10 +25,10 @@ from scipy.spatial import cKDTree
 from service.engine.correspondences import mapped_pairs
 from service.engine.principal_axes import PROPER_SIGN_FLIPS, Frame
 from service.engine.registration import paper_least_squares, ransac
+from service.engine.tuning import VIEWPOINT_AGREEMENT_DEG
 from service.engine.views import Views
 
 SOURCES = ("views", "principal-axes", "mapped", "paper")
-VIEWPOINT_AGREEMENT_DEG = 50.0  # a view hypothesis's camera within this of the viewpoint's
 
 
 @dataclass(frozen=True)

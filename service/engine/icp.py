@@ -1,4 +1,4 @@
-"""Step 5: refine a pose with robust point-to-plane ICP on the reference's distance field.
+"""Step 7, refine: a pose refined with robust point-to-plane ICP on the reference's distance field.
 
 Each iteration carries the observed points into the model frame, looks up the nearest reference
 point and its normal in the distance field (O(1), no tree), and solves the linearised
@@ -13,10 +13,8 @@ sliding directions the data do not fix. Stops when the update turns by less than
 
 Told where the camera was (``viewpoint``), the pairs of the last, precise iterations leave out
 reference samples that face away from it: a depth camera sees no surface that turns its back
-to it, but across a thin wall (a hollow brick's) the nearest sample is as often the far
-side's, and on the two of them together refinement settled in minima of its own, the brick
-shifted toward the camera by 0.02-0.06 of its scale and turned 1-4 degrees, with half its
-observed points paired with samples facing away (a sixth to a quarter at the true pose).
+to it, but across a thin wall the nearest sample is as often the far side's
+(docs/decisions.md#refine).
 """
 
 from __future__ import annotations
@@ -28,15 +26,10 @@ from scipy.spatial import cKDTree
 
 from service.engine.alignment import to_model_frame
 from service.engine.distance_field import DistanceField
+from service.engine.tuning import BACK_FACING, BEHIND, CLOSE, CLOSE_RAD, SURFACE_NEIGHBOURS
 
-NEIGHBOURS = 8  # a sample's neighbours searched when correcting the field's answer
-BEHIND = 1.0  # a point more sample spacings than this behind a tangent plane is not on it
 TUKEY = 4.685  # Tukey's constant: 95 % efficiency on Gaussian residuals
 DAMPING = 1e-6  # relative to the system's trace
-CLOSE_RAD, CLOSE = 0.01, 0.5  # steps this small switch to the corrected nearest samples
-# a sample whose normal makes a cosine under -BACK_FACING with the way to the camera faces away
-# from it; a little past edge-on still counts as seen, where a small turn flips the sign
-BACK_FACING = 0.2
 
 
 @dataclass(frozen=True)
@@ -53,9 +46,9 @@ class Surface:
     def of(
         cls, points: np.ndarray, normals: np.ndarray, field: DistanceField, tree: cKDTree
     ) -> Surface:
-        # a cloud of fewer points than NEIGHBOURS has that many neighbours a point (the tree
+        # a cloud of fewer points than SURFACE_NEIGHBOURS has that many neighbours a point (the tree
         # would name a missing one by an index past the end)
-        count = min(NEIGHBOURS, len(points))
+        count = min(SURFACE_NEIGHBOURS, len(points))
         distances, neighbours = tree.query(points, k=list(range(1, count + 1)))
         spacing = float(np.median(distances[:, 1]))
         return cls(points, normals, field, neighbours.astype(np.intp), spacing)

@@ -1,4 +1,4 @@
-"""Step 2 of the chain: map every point to 2-D with the exported network (onnxruntime).
+"""Step 2, map: map every point to 2-D with the exported network (onnxruntime).
 
 The CUDA execution provider is used when onnxruntime-gpu and a GPU are present and
 ``use_cuda`` is set, the CPU provider otherwise. How the network expects its input
@@ -6,12 +6,8 @@ The CUDA execution provider is used when onnxruntime-gpu and a GPU are present a
 and its preprocessing cannot be separated.
 
 The process's BLAS (numpy's and scipy's OpenBLAS) is held to ``blas_threads`` (one) where a
-``Mapper`` is made: OpenBLAS runs a product of a few million values, such as eq. (4)'s
-weights for 1,000 references, on every core, and its workers then spin a while, taking
-the cores from onnxruntime's threads and the engine's own. Measured in process on 200 full
-clouds against 1,000 references (``benchmarks.align_http``'s clouds and padding), median
-``Engine.align``: 19.3 ms with two BLAS threads, 10.4-11.0 ms with one (40 references:
-10.2 ms either way); the network's step 2.5 -> 1.7 ms, eq. (4)'s 2.7 -> 0.5 ms.
+``Mapper`` is made: its spinning workers took the cores from onnxruntime's threads
+(docs/decisions.md#speed).
 """
 
 from __future__ import annotations

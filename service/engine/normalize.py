@@ -1,4 +1,4 @@
-"""Step 1 of the chain: put a cloud in the frame the network was trained in.
+"""Step 1, normalise: put a cloud in the frame the network was trained in.
 
 The network sees points centred on their centroid and divided by the radius
 (the largest distance from the centroid to a point, the contract's *scale*),

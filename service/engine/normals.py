@@ -21,11 +21,11 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-NEIGHBOURS = 16  # points in the plane fitted for an estimated normal
+from service.engine.tuning import NORMAL_NEIGHBOURS
 
 
 def estimate_normals(
-    points: np.ndarray, neighbours: int = NEIGHBOURS, tree: cKDTree | None = None
+    points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: cKDTree | None = None
 ) -> np.ndarray:
     """(N, 3) unit normals of a cloud, up to sign: the local plane of each point's neighbours."""
     points = np.asarray(points, dtype=np.float64)

@@ -13,10 +13,7 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-# two principal spreads within this share of each other: a round or square section, whose
-# principal axes in that plane are any two (a sample's, an observation's)
-ROUND_SPREADS = 0.1
-ROUND_TURN_DEG = 45.0  # the principal-axes matches are then also turned by every this much
+from service.engine.tuning import ROUND_SPREADS, ROUND_TURN_DEG
 
 # The four sign patterns of a right-handed frame: diag(s) with det = +1.
 PROPER_SIGN_FLIPS = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=np.float64)

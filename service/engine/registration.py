@@ -1,4 +1,4 @@
-"""Step 4b: rigid poses from paired points.
+"""Step 5, hypothesise: rigid poses from paired points.
 
 Every pose here answers ``scene = R @ model + t`` for pairs ``(model[i], scene[i])``.
 """

@@ -1,6 +1,10 @@
-"""Steps 4-6 of ``Engine.align`` for one query: hypothesise poses of each candidate, verify
-them (fit x coverage), refine the best (point-to-plane ICP); then the best pose's flips,
-near-symmetries and finishing refinement."""
+"""Steps 5-7 of ``Engine.align`` for one reading: hypothesise poses of each candidate part,
+verify them (fit x coverage), refine the best (point-to-plane ICP), pass by pass; then the
+best pose's flips, near-symmetries and finishing refinement (``finish``).
+
+A pass is a ``Plan``: which sources each candidate row is hypothesised from, how many of the
+verified hypotheses are refined, and whether more parts are rescued when none fits well.
+"""
 
 from __future__ import annotations
 
@@ -10,68 +14,56 @@ import numpy as np
 
 from service.engine import hypotheses as sources
 from service.engine.answer import CandidateFit
-from service.engine.entry import EXPECTED, Entry
+from service.engine.entry import Entry
+from service.engine.fits import Fit
 from service.engine.hypotheses import Hypotheses
 from service.engine.icp import icp
 from service.engine.normalize import radius, subsample
 from service.engine.principal_axes import Frame
+from service.engine.query import Observed, Query
 from service.engine.symmetry import FINE_DEG, apart
+from service.engine.tuning import (
+    ALIKE,
+    DIFFERENT_DEG,
+    ENOUGH_BEHIND,
+    EXPECTED,
+    FAR_BELOW,
+    FIRST_LEAD,
+    FIRST_REFINED,
+    NEAR_PRESCREENED,
+    NEAR_SCREENED,
+    PER_PART,
+    QUICK_POINTS,
+    RESCUE_BELOW,
+    RESCUE_EACH,
+    RESIDUAL_ALIKE,
+    SCREEN_ALIKE,
+)
 from service.engine.verification import Lookup, Occupancy, coverage, fit, surface_distance
 from service.engine.views import camera_at
 from service.settings import EngineSettings
 
-
-@dataclass
-class Fit:
-    """One verified (and perhaps refined) hypothesis of one candidate."""
-
-    row: int
-    rotation: np.ndarray
-    translation: np.ndarray
-    source: str
-    view: int  # the view the camera was expected to see (-1: the whole part)
-    fit: float
-    coverage: float
-    refined: bool = False
-    settled: bool = False  # its last refinement stopped before its iterations ran out
-
-    @property
-    def score(self) -> float:
-        return self.fit * self.coverage
-
-
-DIFFERENT_DEG = 10.0  # poses this far apart (symmetry accounted for) are different answers
-ALIKE = 0.9  # ... and fit alike when within this share of the best's fit x coverage
-MAX_ALTERNATIVES = 3
 NEAR_SOURCE = "near-symmetry"  # the hypothesis of a pose found by turning the best one
 FLIP_SOURCE = "flip"  # ... by turning it half a turn about a principal axis of its part
-NEAR_PRESCREENED = 32  # turned poses of a kind measured on the corrected distance ...
-NEAR_SCREENED = 8  # ... of which these are measured again on the network's sample
-SCREEN_ALIKE = 1.5  # a turned pose this much farther before refining is not refined
-RESIDUAL_ALIKE = 1.15  # a turned pose this much farther from the surface is no alternative
-# another pose that places the part closer than this share of its scale to the answer's (a
-# gear turned by a tooth, a near-symmetric part flipped) does not lower the confidence: were it
-# the truth, the answer would still be precise (ADD-S under 0.02 of the diameter, which is at
-# least the scale); a mug turned to hide its handle (0.04-0.06 of its scale) still does
-RIGHT_EITHER_WAY = 0.02
+
+
+@dataclass(frozen=True)
+class Plan:
+    """One pass of the search: hypotheses of each row from its sources, the best ``budget``
+    refined (and eq. (4)'s sure ``first`` choice's in any case), ``screened`` kept of each
+    row's quick look (default ``settings.screened``), and with ``rescue`` more parts' refined
+    where none fits well."""
+
+    sources: dict[int, list[str]]  # classifier row -> hypothesis sources
+    budget: int
+    first: int | None = None
+    rescue: bool = False
+    screened: int | None = None
 
 
 def excellent(fits: list[Fit], settings: EngineSettings) -> bool:
     """Whether the best fit so far ends the search."""
     return any(f.score >= settings.excellent for f in fits)
-
-
-QUICK_POINTS = 24  # observed and expected points of the quick look that screens hypotheses
-WHOLE_REFINED = 2  # hypotheses refined in each whole-part pass
-# principal-axes hypotheses verified in the whole-part pass: as many as their four sign flips
-# (the turns of a round section are alternatives to them, and each verified costs as one)
-WHOLE_SCREENED = 4
-ENOUGH_BEHIND = 0.8  # a hypothesis this far below an excellent refined one is not refined
-FAR_BELOW = 0.5  # nor one below this share of the best hypothesis before refining
-RESCUE_BELOW = 0.7  # "fits well" for settings.rescued_parts: fit x coverage
-RESCUE_EACH = 2  # hypotheses refined of each rescued part
-FIRST_REFINED = 1  # hypotheses of eq. (4)'s first choice refined in any case ...
-FIRST_LEAD = 2.0  # ... when its score is this many times the next part's
 
 
 def view_camera(
@@ -94,68 +86,79 @@ def sure_first(scores: np.ndarray, ranked: np.ndarray) -> int | None:
 
 
 class Search:
-    """Steps 4-6 for one query: hypothesise, verify, refine, for a set of candidates."""
+    """Steps 5-7 for one reading: hypothesise, verify, refine, pass by pass."""
 
-    def __init__(self, engine, snapshot, observed, observed_mapped, spacing, query, clock):
-        settings = engine.settings
+    def __init__(self, settings: EngineSettings, query: Query, observed: Observed):
         self.settings = settings
-        self.snapshot = snapshot
-        self.labels = snapshot.classifier.labels
-        self.observed = observed
-        self.observed_mapped = observed_mapped
+        self.snapshot = query.snapshot
+        self.labels = query.snapshot.classifier.labels
+        self.refining = query.refine
+        self.observed = points = observed.points
+        self.observed_mapped = observed.mapped
         self.viewpoint = query.viewpoint
         self.rng = rng = query.rng
-        self.clock = clock
-        self.frame = Frame.of(observed)  # what every principal-axes and view hypothesis uses
-        self.quick = observed[subsample(observed, QUICK_POINTS, rng)]
-        self.cheap = observed[subsample(observed, settings.verify_points, rng)]
-        self.refine_on = observed[subsample(observed, settings.icp_points, rng)]
+        self.clock = query.clock
+        self.query = query
+        self.frame = Frame.of(points)  # what every principal-axes and view hypothesis uses
+        self.quick = points[subsample(points, QUICK_POINTS, rng)]
+        self.cheap = points[subsample(points, settings.verify_points, rng)]
+        self.refine_on = points[subsample(points, settings.icp_points, rng)]
         # "is an observed point near here", at the tolerance or the observation's own spacing
-        self.occupancy = Occupancy.around(observed, settings.tolerance * radius(observed), spacing)
+        self.occupancy = Occupancy.around(
+            points, query.tolerance(settings.tolerance, radius(points)), observed.spacing
+        )
 
-    def run(
-        self,
-        planned: dict[int, list[str]],
-        refine: bool,
-        budget: int,
-        first: int | None = None,
-        rescue: bool = False,
-        screened: int | None = None,
-    ) -> list[Fit]:
-        """Verified fits of every candidate row from its planned sources (the ``screened``
-        best of a quick look where it made more: ``settings.screened`` unless given); the best
-        ``budget`` refined, and the best of row ``first`` (eq. (4)'s first choice) in any case,
-        and with ``rescue`` more parts' when none fits well. Returns each row's best fit, and
-        every refined one."""
-        settings = self.settings
-        keep = screened or settings.screened
+    def entry(self, row: int) -> Entry:
+        return self.snapshot.entries[self.labels[row]]
+
+    def tolerance(self, entry: Entry) -> float:
+        """The fit and coverage distance for this part (``Query.tolerance``)."""
+        return self.query.tolerance(self.settings.tolerance, entry.reference.scale)
+
+    # --- one pass -------------------------------------------------------------------------
+
+    def hypothesise(self, plan: Plan) -> list[tuple[int, Hypotheses]]:
+        """Step 5: every planned row's pose hypotheses from its sources."""
+        made = [
+            (row, self.hypotheses_of(self.entry(row), chosen))
+            for row, chosen in plan.sources.items()
+        ]
+        self.clock.lap("hypothesise")
+        return made
+
+    def verify(self, made: list[tuple[int, Hypotheses]], plan: Plan) -> list[Fit]:
+        """Step 6: each row's hypotheses screened by a quick look on a few points (the
+        ``screened`` best kept), then fit x coverage on the cheap sample; best first."""
+        keep = plan.screened or self.settings.screened
         fits: list[Fit] = []
-        for row, chosen in planned.items():
-            entry = self.snapshot.entries[self.labels[row]]
-            made = self.hypothesise(entry, chosen)
-            self.clock.lap("hypothesise")
-            if len(made) > keep:  # a quick look first, on a few points
-                made = made.take(self.screen(entry, made)[:keep])
-            if len(made):
-                fits += self.verify(row, entry, made)
-            self.clock.lap("verify")
+        for row, hypotheses in made:
+            entry = self.entry(row)
+            if len(hypotheses) > keep:
+                hypotheses = hypotheses.take(self.screen(entry, hypotheses)[:keep])
+            if len(hypotheses):
+                fits += self.check(row, entry, hypotheses)
+        self.clock.lap("verify")
+        fits.sort(key=lambda f: -f.score)
+        return fits
+
+    def refine(self, fits: list[Fit], plan: Plan) -> list[Fit]:
+        """Step 7: the pass's best fits refined (``refine_best_first``). Returns each row's
+        best fit, and every refined one. A row's best is its best refined fit where it has
+        one: an unrefined score is the cheap sample's, and one lucky there would win
+        unrefined, past the near-symmetries and the polish."""
         if not fits:
             return []
-        fits.sort(key=lambda f: -f.score)
-        if refine:
-            self.refine_best_first(fits, budget, first, rescue)
+        if self.refining:
+            self.refine_best_first(fits, plan)
             self.clock.lap("refine")
         best: dict[int, Fit] = {}
-        # a row's best is its best refined fit where it has one: an unrefined fit's score is
-        # measured on the cheap sample, and one lucky there (a flange turned 55 degrees, 0.97
-        # on 64 points) would otherwise win unrefined, past the near-symmetries and the polish
         for candidate in sorted(fits, key=lambda f: (not f.refined, -f.score)):
             best.setdefault(candidate.row, candidate)
         return list(best.values()) + [f for f in fits if f.refined and best[f.row] is not f]
 
     def screen(self, entry: Entry, made: Hypotheses) -> np.ndarray:
         """Hypotheses ordered by a quick fit x coverage on a few points, best first."""
-        tolerance = self.settings.tolerance * entry.reference.scale
+        tolerance = self.tolerance(entry)
         fits_ = fit(
             entry.surface,
             self.quick,
@@ -168,49 +171,51 @@ class Search:
         covered = coverage(expected, made.rotations, made.translations, self.occupancy)
         return np.argsort(-(fits_ * covered), kind="stable")
 
-    def refine_best_first(
-        self, fits: list[Fit], budget: int, first: int | None = None, rescue: bool = False
-    ) -> None:
-        """Refine the best ``budget`` hypotheses (at most two a candidate), best first, leaving
-        out those far below the best before refining; stop once one is excellent and the next
-        looks clearly worse than it. With ``rescue`` (the single-view pass), if none then fits
-        well (``RESCUE_BELOW``), the best two hypotheses of each next part (up to
-        ``settings.rescued_parts`` parts) are refined too, until one does: a part's right pose
-        may verify worse than another part's before refinement (a single view seen from an
-        unlucky side), and a part told alone then finds it. Not in the whole-part pass, whose
-        candidates are eq. (4)'s own few: there a rescued part that fits as poorly as the
-        first choice's refined pose only takes its place (a full cloud of random-125)."""
-        settings = self.settings
+    def refine_best_first(self, fits: list[Fit], plan: Plan) -> None:
+        """Refine the best of ``fits`` (sorted, best first) within the plan's budget; eq. (4)'s
+        sure first choice in any case; and with ``rescue``, more parts where none fits well."""
+        refined, per_row = self.refine_budget(fits, plan.budget)
+        if plan.first is not None and plan.first not in per_row:
+            # its best pose too: of two parts of nearly one shape, the right one's refined pose
+            # fits better (docs/decisions.md#refine)
+            for mine in [f for f in fits if f.row == plan.first][:FIRST_REFINED]:
+                per_row[plan.first] = per_row.get(plan.first, 0) + 1
+                self.refine_one(mine)
+                refined.append(mine)
+        if plan.rescue and self.settings.rescued_parts:
+            self.rescue(fits, per_row, refined)
+
+    def refine_budget(self, fits: list[Fit], budget: int) -> tuple[list[Fit], dict[int, int]]:
+        """The best ``budget`` hypotheses refined (``PER_PART`` a part at most), leaving out
+        those far below the best before refining; stopping once one is excellent and the next
+        looks clearly worse. The refined fits, and how many of each row."""
         per_row: dict[int, int] = {}
         refined: list[Fit] = []
-        floor = FAR_BELOW * fits[0].score  # sorted, best first
+        floor = FAR_BELOW * fits[0].score
         for candidate in fits:
             if len(refined) == budget or candidate.score < floor:
                 break
-            if per_row.get(candidate.row, 0) == 2:
+            if per_row.get(candidate.row, 0) == PER_PART:
                 continue
             best = max((f.score for f in refined), default=0.0)
-            if best >= settings.excellent and candidate.score < ENOUGH_BEHIND * best:
+            if best >= self.settings.excellent and candidate.score < ENOUGH_BEHIND * best:
                 break
             per_row[candidate.row] = per_row.get(candidate.row, 0) + 1
-            self.refine(candidate)
+            self.refine_one(candidate)
             refined.append(candidate)
-        if first is not None and first not in per_row:
-            # the part eq. (4) likes best, left out because another part's pose verified
-            # better before refining: its best pose is refined too, in this pass's sources.
-            # Two parts of nearly one shape (under noise) are told apart by the right one's
-            # refined pose, which then fits better than the wrong one's (both noisy clouds of
-            # random-250: one needed the principal axes' pose, the other a rendered view's)
-            for mine in [f for f in fits if f.row == first][:FIRST_REFINED]:
-                per_row[first] = per_row.get(first, 0) + 1
-                self.refine(mine)
-                refined.append(mine)
-        if not rescue or not settings.rescued_parts:
-            return
+        return refined, per_row
+
+    def rescue(self, fits: list[Fit], per_row: dict[int, int], refined: list[Fit]) -> None:
+        """Where no refined fit fits well (``RESCUE_BELOW``), the best ``RESCUE_EACH``
+        hypotheses of each next part (up to ``settings.rescued_parts`` parts) refined on half
+        the ICP budget, until one does; the best of them then on the rest, if it beats every
+        fully refined one. A part's right pose may verify worse than another part's before
+        refinement (docs/decisions.md#refine)."""
+        settings = self.settings
         best = max((f.score for f in refined), default=0.0)
         rescued: dict[int, int] = {}
         tried: list[Fit] = []
-        for candidate in fits:  # nothing fits well: each next part's best get their chance
+        for candidate in fits:
             if best >= RESCUE_BELOW:
                 break
             if candidate.row in per_row or rescued.get(candidate.row, 0) == RESCUE_EACH:
@@ -218,16 +223,14 @@ class Search:
             if candidate.row not in rescued and len(rescued) == settings.rescued_parts:
                 continue
             rescued[candidate.row] = rescued.get(candidate.row, 0) + 1
-            self.refine(candidate, iterations=max(1, settings.icp_iterations // 2))
+            self.refine_one(candidate, iterations=max(1, settings.icp_iterations // 2))
             tried.append(candidate)
             best = max(best, candidate.score)
-        # a rescued pose was refined on half the budget; the one that now fits best gets the
-        # rest, if it beats every fully refined one
         winner = max(tried, key=lambda f: f.score, default=None)
         if winner is not None and winner.score > max((f.score for f in refined), default=0.0):
-            self.refine(winner)
+            self.refine_one(winner)
 
-    def hypothesise(self, entry: Entry, chosen: list[str]) -> Hypotheses:
+    def hypotheses_of(self, entry: Entry, chosen: list[str]) -> Hypotheses:
         settings = self.settings
         reference = entry.reference
         made = []
@@ -261,10 +264,12 @@ class Search:
             views = entry.views.nearest(implied)
         return entry.surface.points[entry.expected[views, :count]]
 
-    def verify(self, row: int, entry: Entry, made: Hypotheses, count: int | None = None):
+    def check(self, row: int, entry: Entry, made: Hypotheses, count: int | None = None):
+        """Fit x coverage of each hypothesis: on the cheap sample to the nearest surface
+        sample, or (``count``, a refined pose, whose fit the confidence weighs) on the
+        refinement's sample to the facing sample (docs/decisions.md#verify)."""
         settings = self.settings
-        scale = entry.reference.scale
-        tolerance = settings.tolerance * scale
+        tolerance = self.tolerance(entry)
         observed = self.cheap if count is None else self.refine_on
         fits_ = fit(
             entry.surface,
@@ -272,10 +277,6 @@ class Search:
             made.rotations,
             made.translations,
             tolerance,
-            # the cheap check of many poses to the nearest sample; the refined one, whose fit
-            # the confidence weighs, to the facing one (measured against the nearest sample:
-            # 4 more right answers accepted of 216 depth views, 2 of 108 tables, 4 of 432 full
-            # clouds; never told the viewpoint, 3 and 4 more)
             "nearest" if count is None else "facing",
         )
         expected = self.expected(entry, made, count or settings.coverage_points)
@@ -293,33 +294,44 @@ class Search:
             for h in range(len(made))
         ]
 
-    def refine(self, candidate: Fit, iterations: int | None = None) -> None:
+    def refine_one(self, candidate: Fit, iterations: int | None = None) -> None:
         """Point-to-plane ICP from the fit's pose (``iterations``: the setting's unless
         given), then verified again on more points."""
-        entry = self.snapshot.entries[self.labels[candidate.row]]
+        entry = self.entry(candidate.row)
         rotation, translation = self.icp(candidate, iterations or self.settings.icp_iterations)
         made = Hypotheses(
             rotation[None], translation[None], (candidate.source,), np.array([candidate.view])
         )
-        (checked,) = self.verify(candidate.row, entry, made, count=EXPECTED)
+        (checked,) = self.check(candidate.row, entry, made, count=EXPECTED)
         candidate.rotation, candidate.translation = rotation, translation
         candidate.fit, candidate.coverage, candidate.refined = checked.fit, checked.coverage, True
+
+    # --- the best pose, finished ----------------------------------------------------------
+
+    def finish(self, fits: list[Fit]) -> list[Fit]:
+        """Step 7 for the best pose (``fits`` best first): turned by its part's flips and
+        near-symmetries, each refined, the best first; then its refinement finished."""
+        fits = self.flip(fits)
+        self.clock.lap("flips")
+        fits = self.resolve_near(fits)
+        self.clock.lap("near-symmetries")
+        if self.polish(fits[0]):
+            self.clock.lap("refine")
+        return fits
 
     def icp(
         self, candidate: Fit, iterations: int, points: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """The fit's pose refined by point-to-plane ICP on ``points`` (the refinement's sample
         unless given); ``candidate.settled`` says whether it stopped before ``iterations``."""
-        settings = self.settings
-        entry = self.snapshot.entries[self.labels[candidate.row]]
-        scale = entry.reference.scale
+        entry = self.entry(candidate.row)
         rotation, translation, done = icp(
             self.refine_on if points is None else points,
             entry.surface,
             candidate.rotation,
             candidate.translation,
-            noise=0.25 * settings.tolerance * scale,
-            gate=5 * settings.tolerance * scale,
+            noise=0.25 * self.tolerance(entry),
+            gate=5 * self.tolerance(entry),
             iterations=iterations,
             viewpoint=self.camera_of(entry, candidate),
         )
@@ -329,21 +341,16 @@ class Search:
     def camera_of(self, entry: Entry, candidate: Fit) -> np.ndarray | None:
         """Where the camera was, in the scene: the viewpoint, if told; else, for a pose
         hypothesised from one of the part's rendered views, that view's camera placed by the
-        pose (``view_camera``), held where the start put
-        it. Never told the viewpoint, the symmetric groups' depth views were answered within
-        2 degrees in 69 -> 76 of 90 groups with it, depth views of unseen parts recognised
-        94.4 -> 97.2 %."""
+        pose (``view_camera``; docs/decisions.md#refine)."""
         if self.viewpoint is not None or candidate.view < 0:
             return self.viewpoint
         return view_camera(entry, candidate.view, candidate.rotation, candidate.translation)
 
     def polish(self, winner: Fit) -> bool:
         """Finish the winner's pose where the search's budget cut its refinement short: up to
-        ``polish_iterations`` more, on the network's sample of the observation (the search
-        refines on a smaller one of ``icp_points``, whose own scatter limits the pose). Only
-        the pose changes: its fit and coverage stay the search's, which the confidence was
-        calibrated on (measured again at the finished pose, they let a foreign part's view
-        past the threshold). Whether it ran."""
+        ``polish_iterations`` more, on the network's sample of the observation. Only the pose
+        changes: its fit and coverage stay the search's, which the confidence was calibrated
+        on (docs/decisions.md#refine). Whether it ran."""
         extra = self.settings.polish_iterations
         if not extra or not winner.refined or winner.settled:
             return False
@@ -353,15 +360,13 @@ class Search:
     def flip(self, fits: list[Fit]) -> list[Fit]:
         """``fits`` (best first) with the best pose turned half a turn about each of its part's
         principal axes (through the part's centroid, in the model frame), each refined, first
-        where one fits better; unless the best fits excellently, or is unrefined. A pose from
-        principal frames is matched up to their axes' signs, and one in the wrong sign
-        refines into its own minimum: of the evaluation's depth views and views on a table,
-        28 answers fitted clearly worse than the truth (60-93 % of the points against
-        96-100 %), most turned about half a turn from it (README, "Flips")."""
+        where one fits better; unless the best fits excellently, or is unrefined. A frame is
+        matched up to its axes' signs, and the wrong sign refines into a minimum of its own
+        (docs/decisions.md#refine)."""
         best = fits[0]
         if not best.refined or best.score >= self.settings.excellent:
             return fits
-        entry = self.snapshot.entries[self.labels[best.row]]
+        entry = self.entry(best.row)
         turns = entry.frame.half_turns
         centre = entry.frame.centroid  # scene = R (T (m - c) + c) + t
         rotations = np.einsum("ij,njk->nik", best.rotation, turns)
@@ -372,7 +377,7 @@ class Search:
             if entry.symmetry.distance_deg(rotations[k], best.rotation) <= DIFFERENT_DEG:
                 continue  # the same pose: a symmetry of the part
             candidate = Fit(best.row, rotations[k], translations[k], FLIP_SOURCE, views[k], 0, 0)
-            self.refine(candidate)
+            self.refine_one(candidate)
             flipped.append(candidate)
         top = max(flipped, key=lambda f: f.score, default=None)
         return fits if top is None or top.score <= best.score else [top, *fits]
@@ -380,14 +385,12 @@ class Search:
     def resolve_near(self, fits: list[Fit], repeat: bool = True) -> list[Fit]:
         """``fits`` (best first) with the best pose tried turned by each near-symmetry of its
         part (about the part's centre, in the model frame), each refined: a notch or a cross
-        hole may be all that tells those poses apart, too little to move fit x coverage. Of
-        the poses that fit alike, the one whose points lie closest to the surface (the mean
-        distance, cut at three tolerances) goes first; those as close as it (within
-        ``RESIDUAL_ALIKE``) stay as alternatives, the clearly farther ones go. Where a pose
-        turned end for end goes first, its own turns are tried once more (``repeat``): the
-        flip was found at some turn about the axis, its cross hole's perhaps elsewhere."""
+        hole may be all that tells those poses apart. Of the poses that fit alike, the one
+        whose points lie closest to the surface goes first; those as close as it (within
+        ``RESIDUAL_ALIKE``) stay as alternatives. Where a pose turned end for end goes first,
+        its own turns are tried once more (``repeat``)."""
         best = fits[0]
-        entry = self.snapshot.entries[self.labels[best.row]]
+        entry = self.entry(best.row)
         symmetry = entry.symmetry
         if not best.refined or not len(symmetry.near) or not self.settings.near_refined:
             return fits
@@ -395,32 +398,13 @@ class Search:
         turns = symmetry.near_tried
         rotations = np.einsum("ij,njk->nik", best.rotation, turns)
         translations = best.translation + (centre - turns @ centre) @ best.rotation.T
-        # without a viewpoint, coverage is measured against the view each turned pose expects:
-        # the unturned pose's would judge a flange turned by half a turn by its hidden side
+        # coverage against the view each turned pose expects, not the unturned pose's
         views = entry.views.turned(best.view, turns)
-        # screened first: the few turned poses nearest the surface are refined, unless even
-        # they lie clearly farther from it than the best; each kind on its own (a nearly
-        # round part's turns about its axis, and its flips end for end), as the many turns
-        # about the axis, alike all round, would crowd out a flip
-        screened = self.residuals(entry, rotations, translations, lookup="field")
-        (own,) = self.residuals(entry, best.rotation[None], best.translation[None], lookup="field")
-        order = np.argsort(screened)
-        order = order[screened[order] <= SCREEN_ALIKE * own]
-        reversing = symmetry.near_reversing
-        kinds = [order[~reversing[order]], order[reversing[order]]]
-        kinds = [self.screen_near(entry, kind, rotations, translations, turns) for kind in kinds]
-        # then nearest on the network's sample (a notch or a cross hole is a few of them): the
-        # nearest of each kind refined first, then the nearest others
-        order = np.concatenate(kinds)
-        again = self.residuals(entry, rotations[order], translations[order], self.observed)
-        order = order[np.argsort(again, kind="stable")]
-        firsts = np.concatenate([order[reversing[order] == flip][:1] for flip in (False, True)])
-        order = np.concatenate([firsts, order[~np.isin(order, firsts)]])
-        order = order[: self.settings.near_refined]
+        order = self.near_order(entry, best, rotations, translations, turns)
         turned = []
         for k in order:
             candidate = Fit(best.row, rotations[k], translations[k], NEAR_SOURCE, views[k], 0, 0)
-            self.refine(candidate)
+            self.refine_one(candidate)
             turned.append(candidate)
         alike = [best] + [t for t in turned if t.score >= ALIKE * best.score]
         if len(alike) == 1:
@@ -439,10 +423,37 @@ class Search:
             if f is not alike[chosen] and r <= RESIDUAL_ALIKE * residuals[chosen]
         ]
         answer = [alike[chosen], *close, *fits[1:]]
+        reversing = symmetry.near_reversing
         flipped = [t for t, k in zip(turned, order, strict=True) if reversing[k]]
         if repeat and any(alike[chosen] is t for t in flipped):
             return self.resolve_near(answer, repeat=False)
         return answer
+
+    def near_order(
+        self,
+        entry: Entry,
+        best: Fit,
+        rotations: np.ndarray,
+        translations: np.ndarray,
+        turns: np.ndarray,
+    ) -> np.ndarray:
+        """Which of the turned poses to refine, in order: those not clearly farther from the
+        surface than the best (``SCREEN_ALIKE``), screened each kind on its own (turns about
+        a nearly round axis, and flips end for end: the many turns would crowd out a flip),
+        then nearest on the network's sample, the nearest of each kind first."""
+        screened = self.residuals(entry, rotations, translations, lookup="field")
+        (own,) = self.residuals(entry, best.rotation[None], best.translation[None], lookup="field")
+        order = np.argsort(screened)
+        order = order[screened[order] <= SCREEN_ALIKE * own]
+        reversing = entry.symmetry.near_reversing
+        kinds = [order[~reversing[order]], order[reversing[order]]]
+        kinds = [self.screen_near(entry, kind, rotations, translations, turns) for kind in kinds]
+        order = np.concatenate(kinds)
+        again = self.residuals(entry, rotations[order], translations[order], self.observed)
+        order = order[np.argsort(again, kind="stable")]
+        firsts = np.concatenate([order[reversing[order] == flip][:1] for flip in (False, True)])
+        order = np.concatenate([firsts, order[~np.isin(order, firsts)]])
+        return order[: self.settings.near_refined]
 
     def screen_near(
         self,
@@ -477,7 +488,7 @@ class Search:
         points = self.refine_on if points is None else points
         model = np.matmul(points[None] - translations[:, None], rotations)
         distance, _ = surface_distance(entry.surface, model, lookup)
-        return np.minimum(distance, 3 * self.settings.tolerance * scale).mean(axis=1) / scale
+        return np.minimum(distance, 3 * self.tolerance(entry)).mean(axis=1) / scale
 
     def candidate_fits(self, fits: list[Fit], scores: np.ndarray) -> list[CandidateFit]:
         """One line a candidate, best first: its best pose's mean distance from the observed
@@ -486,7 +497,7 @@ class Search:
         for candidate in sorted(fits, key=lambda f: -f.score):
             if candidate.row in out:
                 continue
-            entry = self.snapshot.entries[self.labels[candidate.row]]
+            entry = self.entry(candidate.row)
             model = (self.cheap - candidate.translation) @ candidate.rotation
             nearest = entry.surface.field.lookup(model)
             error = float(np.linalg.norm(model - entry.surface.points[nearest], axis=1).mean())

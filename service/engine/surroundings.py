@@ -1,4 +1,4 @@
-"""Step 0: set aside what surrounds the part: the table it rests on, and stray points.
+"""Step 0, set aside: set aside what surrounds the part: the table it rests on, and stray points.
 
 A cell's camera sees the part on its support, with a few stray points (edges, reflections)
 and sometimes other things in view. Before recognition:
@@ -27,26 +27,28 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from service.engine.normalize import radius, subsample
+from service.engine.tuning import (
+    AROUND,
+    BEYOND,
+    LINK_SPACINGS,
+    ONE_SIDE,
+    PLANE_ITERATIONS,
+    PLANE_REACH,
+    PLANE_SCORED,
+    PLANE_SHARE,
+    PLANE_SHARE_BLIND,
+    PLANE_SPACINGS,
+    STRAY_GAP,
+    STRAY_SHARE,
+    SURROUNDINGS_SAMPLE,
+    THICKNESS,
+)
 
-MAX_POINTS = 1024  # decisions are made on a sample of this many points
-PLANE_SHARE = 0.2  # a support plane holds at least this share of the points ...
-PLANE_SHARE_BLIND = 0.5  # ... this share, when the viewpoint is not known
-PLANE_REACH = 1.5  # ... reaches this many times the rest's radius from the rest's centroid
-ONE_SIDE = 0.95  # ... has this share of the rest on one side of it
-BEYOND = 0.5  # ... has this share of its points beyond the part's footprint
-AROUND = 9  # ... in at least this many of 12 directions around it
-PLANE_ITERATIONS = 96
-PLANE_SCORED = 256  # points the candidate planes are scored on
-PLANE_SPACINGS = 1.5  # plane inliers lie within this many spacings of it
-THICKNESS = 4.0  # a table: within this many standard deviations of its fitted plane
-LINK_SPACINGS = 3.0  # neighbours closer than this many spacings are one group
-STRAY_SHARE = 0.02  # a group of less than this share of the points ...
-STRAY_GAP = 10.0  # ... this many spacings from any larger group is stray
 BRUTE_FORCE = 65536  # point pairs measured one by one rather than through a tree, at most
 
 
 @dataclass(frozen=True)
-class Observation:
+class Reading:
     points: np.ndarray  # (M, 3) what is taken to be the part
     set_aside: int  # points of the original cloud taken to be support, strays or clutter
     support: np.ndarray | None  # (4,) the table's plane n . x = d, if one was found
@@ -149,16 +151,16 @@ def the_part(points: np.ndarray, labels: np.ndarray, step: float) -> np.ndarray:
 
 def set_aside_surroundings(
     points: np.ndarray, rng: np.random.Generator, viewpoint: np.ndarray | None = None
-) -> list[Observation]:
+) -> list[Reading]:
     """What may be the part's points (of all of ``points``): strays set aside, and a support
     plane if there is one; where a plane was set aside, also the reading that
     keeps it (in case it is the part's own face). The engine keeps the one the part fits best.
 
-    The plane is found on a sample of ``MAX_POINTS``; what lies off it is judged on a sample of
-    its own, so that a part small in the camera's view (a twentieth of the points, the rest
-    table) is judged on as many points as a part that fills it. Then every point inside the
+    The plane is found on a sample of ``SURROUNDINGS_SAMPLE``; what lies off it is judged on a
+    sample of its own, so that a part small in the camera's view (a twentieth of the points,
+    the rest table) is judged on as many points as a part that fills it. Then every point inside the
     part's bounding sphere (and above the table) is the part's."""
-    sample = points[subsample(points, MAX_POINTS, rng)]
+    sample = points[subsample(points, SURROUNDINGS_SAMPLE, rng)]
     tree = cKDTree(sample)
     step = median_spacing(sample, tree)
     everything = the_part(sample, groups(sample, LINK_SPACINGS * step, tree), step)
@@ -177,10 +179,10 @@ def set_aside_surroundings(
     rest = points[np.abs(points @ plane[:3] - plane[3]) >= thickness]
     if len(rest) < 20:
         return [whole]
-    kept = subsample(rest, MAX_POINTS, rng)
+    kept = subsample(rest, SURROUNDINGS_SAMPLE, rng)
     # the part is seen as densely as the table around it: its spacing in its own sample, from
     # the sample's (the median of the rest's would be the strays' where they outnumber it)
-    rest_step = step * np.sqrt(MAX_POINTS * len(rest) / (len(kept) * len(points)))
+    rest_step = step * np.sqrt(SURROUNDINGS_SAMPLE * len(rest) / (len(kept) * len(points)))
     rest = rest[kept]
     main = rest[the_part(rest, groups(rest, LINK_SPACINGS * rest_step), rest_step)]
     if not is_support(plane, sample[on_plane], main, viewpoint):
@@ -213,7 +215,7 @@ def median_spacing(points: np.ndarray, tree: cKDTree) -> float:
     return float(np.median(distance[:, 1]))
 
 
-def _reading(points, sample, chosen, support, step, thickness=0.0) -> Observation:
+def _reading(points, sample, chosen, support, step, thickness=0.0) -> Reading:
     """Every point of ``points`` within the bounding sphere of the ``chosen`` sample points,
     and more than ``thickness`` above the support plane if there is one."""
     kept = sample[chosen]
@@ -222,4 +224,11 @@ def _reading(points, sample, chosen, support, step, thickness=0.0) -> Observatio
     if support is not None:
         inside &= points @ support[:3] - support[3] > thickness
     observed = points[inside]
-    return Observation(observed, len(points) - len(observed), support, step)
+    return Reading(observed, len(points) - len(observed), support, step)
+
+
+def as_is(points: np.ndarray, rng: np.random.Generator) -> Reading:
+    """The whole of ``points`` as one reading, nothing set aside (a frame's segment, whose
+    supports are already set aside)."""
+    sample = points[subsample(points, SURROUNDINGS_SAMPLE, rng)]
+    return Reading(points, 0, None, median_spacing(sample, cKDTree(sample)))

@@ -13,7 +13,6 @@ def nearest_sized(ratio: np.ndarray) -> int:
 
 
 UNIT_FACTORS = (1000.0, 0.001, 100.0, 0.01)  # millimetres, metres, centimetres, metres
-POOR_FIT = 0.8  # an answer whose part holds less of the cloud may be a cloud in other units
 
 
 def size_reason(factor: float, also: bool = False) -> str:

@@ -7,7 +7,7 @@ centroid, principal frame and radius, and the classifier's features of their gri
 learns a part's views rather than only its full shape).
 
 The camera of a view sits ``CAMERA_DISTANCE`` scales from the centroid, in the middle of a
-cell camera's working range (4 to 8 scales, shared/EVALUATION.md). Which points it sees:
+cell camera's working range (4 to 8 scales, docs/evaluation-protocol.md). Which points it sees:
 - for an uploaded mesh, a depth buffer of a dense sample of its surface (each pixel keeps its
   nearest surface sample; a reference point is seen if it is no deeper than that sample, plus a
   tolerance): a point-based rendering of the mesh itself;
@@ -38,6 +38,7 @@ samples, and keeping them to what faces the camera too lost full clouds (paper-p
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -217,6 +218,11 @@ class Views:
             frames[k] = principal_axes(chosen - centroids[k])
             radii[k] = np.sqrt(((chosen - centroids[k]) ** 2).sum(axis=1).max())
         return cls(directions(count), visible, centroids, frames, radii)
+
+    @cached_property
+    def bases(self) -> np.ndarray:
+        """(K, 3, 3) each view's camera frame: rows u, v and its direction (``camera_basis``)."""
+        return np.stack([camera_basis(d) for d in self.directions])
 
     def nearest(self, toward: np.ndarray) -> np.ndarray:
         """(H,) the view whose camera direction is nearest each of ``toward`` (H, 3), camera

@@ -12,10 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import ConvexHull
 
-# The flipping sphere's radius is the largest distance times 10**HPR_LOG_RADIUS. Checked
-# against mesh ray casting on five pybullet meshes and a sphere (camera at 10 scales, 4 x 2048
-# points): 1.8 % of the points kept wrongly, 3.1 % dropped wrongly, 0.37 kept vs 0.38 truly seen.
-HPR_LOG_RADIUS = 2.8
+from service.engine.tuning import HPR_LOG_RADIUS
 
 
 def visible_points(points: np.ndarray, camera: np.ndarray) -> np.ndarray:

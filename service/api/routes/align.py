@@ -162,16 +162,32 @@ def vector(text: str, name: str) -> list[float]:
     return values
 
 
+def transform(alignment: Alignment) -> list[list[float]]:
+    """The answer's pose as a 4x4 matrix ``[[R, t], [0, 0, 0, 1]]``."""
+    matrix = np.eye(4)
+    matrix[:3, :3] = alignment.rotation
+    matrix[:3, 3] = alignment.translation
+    return matrix.tolist()
+
+
+def alternatives(alignment: Alignment) -> list[AlternativePose]:
+    return [
+        AlternativePose(
+            rotation=np.asarray(a.rotation, float).tolist(),
+            translation=np.asarray(a.translation, float).tolist(),
+            confidence=a.confidence,
+        )
+        for a in alignment.alternatives
+    ]
+
+
 def alignment_response(alignment: Alignment) -> AlignResponse:
-    transform = np.eye(4)
-    transform[:3, :3] = alignment.rotation
-    transform[:3, 3] = alignment.translation
     return AlignResponse(
         label=alignment.label,
         score=alignment.score,
         rotation=np.asarray(alignment.rotation, dtype=float).tolist(),
         translation=np.asarray(alignment.translation, dtype=float).tolist(),
-        transform=transform.tolist(),
+        transform=transform(alignment),
         alignment_error=alignment.alignment_error,
         alignment_error_normalized=alignment.alignment_error_normalized,
         hypothesis=alignment.hypothesis,
@@ -183,13 +199,6 @@ def alignment_response(alignment: Alignment) -> AlignResponse:
         confidence=alignment.confidence,
         reasons=alignment.reasons,
         ambiguous=alignment.ambiguous,
-        alternatives=[
-            AlternativePose(
-                rotation=np.asarray(a.rotation, float).tolist(),
-                translation=np.asarray(a.translation, float).tolist(),
-                confidence=a.confidence,
-            )
-            for a in alignment.alternatives
-        ],
+        alternatives=alternatives(alignment),
         points_set_aside=alignment.points_set_aside,
     )

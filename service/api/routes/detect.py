@@ -1,0 +1,191 @@
+"""``POST /detect``: every registered part in a camera's whole frame."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import APIRouter, Query, Request
+
+from service.api.auth import ReadAccess
+from service.api.dependencies import EngineDep, LimiterDep, SettingsDep
+from service.api.routes.align import alternatives, transform, vector
+from service.api.routes.common import (
+    JSON,
+    MULTIPART,
+    RAW,
+    body_kind,
+    errors,
+    invalid,
+    json_object,
+    known_fields,
+    parse,
+    require,
+)
+from service.api.schemas import (
+    DetectionOut,
+    DetectOptions,
+    DetectRequest,
+    DetectResponse,
+    ReferenceName,
+)
+from service.api.uploads import CAMERA_FIELDS, CLOUD_FILES, Form, form_cloud, read_form
+from service.api.validation import points_from_raw, validate_points
+from service.engine.answer import SceneAnswer
+from service.engine.engine import Engine
+from service.engine.frame import Frame
+from service.settings import Settings
+
+router = APIRouter(tags=["detect"])
+
+OPTIONS = tuple(DetectOptions.model_fields)  # candidates min_confidence viewpoint ...
+BODY = {
+    "required": True,
+    "content": {
+        JSON: {"schema": {"$ref": "#/components/schemas/DetectRequest"}},
+        RAW: {
+            "schema": {"type": "string", "format": "binary"},
+            "description": "little-endian float32 x y z triples; options as query parameters",
+        },
+        MULTIPART: {"schema": {"$ref": "#/components/schemas/DetectUpload"}},
+    },
+}
+
+
+@router.post(
+    "/detect",
+    response_model=DetectResponse,
+    summary="Find every registered part in a camera's whole frame",
+    responses=errors(401, 404, 409, 413, 415, 422, 503, 504),
+    openapi_extra={"requestBody": BODY},
+    dependencies=[ReadAccess],
+)
+async def detect(
+    request: Request,
+    engine: EngineDep,
+    settings: SettingsDep,
+    limiter: LimiterDep,
+    candidates: Annotated[list[ReferenceName] | None, Query()] = None,
+    min_confidence: Annotated[float | None, Query(ge=0, le=1)] = None,
+    viewpoint: Annotated[
+        str | None, Query(description="where the camera was: x,y,z", examples=["0,0,0"])
+    ] = None,
+    max_instances: Annotated[int | None, Query(ge=1, le=200)] = None,
+    roi: Annotated[
+        str | None,
+        Query(description="the box searched: min_x,min_y,min_z,max_x,max_y,max_z"),
+    ] = None,
+) -> DetectResponse:
+    """A frame as ``/align`` takes a cloud: JSON ``{"points": ...}``, raw float32 triples, or a
+    multipart ``file`` (an organized PCD or NPY, a depth image with ``fx fy cx cy``), the options
+    as fields or query parameters. An organized frame keeps its pixel grid: its missing pixels
+    are skipped, and ``indices`` are pixels (``row * width + col``)."""
+    kind = body_kind(request, JSON, RAW, MULTIPART)
+    if kind == MULTIPART:
+        body = await read_form(request, CLOUD_FILES, CAMERA_FIELDS + OPTIONS, "the frame")
+    else:
+        body = await request.body()
+    query = {
+        "candidates": candidates,
+        "min_confidence": min_confidence,
+        "viewpoint": None if viewpoint is None else vector(viewpoint, "viewpoint"),
+        "max_instances": max_instances,
+        "roi": None if roi is None else box(roi),
+    }
+    query = {key: value for key, value in query.items() if value is not None}
+    answer = await limiter.align(_detect, engine, settings, body, kind, query)
+    counter = request.app.state.metrics_detections
+    for detection in answer.detections:
+        counter.labels(verdict=detection.verdict).inc()
+    return answer
+
+
+def _detect(
+    engine: Engine, settings: Settings, body: bytes | Form, kind: str, query: dict[str, Any]
+) -> DetectResponse:
+    """Parse and validate the frame, detect (in a worker thread)."""
+    limits = settings.limits
+    index, shape, implied = None, None, None
+    if isinstance(body, Form):
+        cloud, implied = form_cloud(body, settings)
+        points, index, shape = cloud.points, cloud.index, cloud.shape
+        options = parse(DetectOptions, {**query, **form_options(body)})
+    elif kind == RAW:
+        options = parse(DetectOptions, query)
+        points = points_from_raw(body, limits.min_points, limits.max_points)
+    else:
+        data = json_object(body)
+        known_fields(data, DetectRequest.model_fields)
+        options = parse(
+            DetectOptions, {**query, **{k: v for k, v in data.items() if k != "points"}}
+        )
+        points = validate_points(require(data, "points"), limits.min_points, limits.max_points)
+    viewpoint = options.viewpoint or implied
+    frame = Frame.of(points, index, shape, None if viewpoint is None else np.asarray(viewpoint))
+    roi = None if options.roi is None else (np.array(options.roi.min), np.array(options.roi.max))
+    scene = engine.detect(
+        frame, options.candidates, options.max_instances, roi, options.min_confidence
+    )
+    return detect_response(scene)
+
+
+def form_options(form: Form) -> dict[str, Any]:
+    """The options a multipart body gives as text fields (``candidates`` may repeat)."""
+    options: dict[str, Any] = {}
+    for name in OPTIONS:
+        value = form.value(name)
+        if value is None:
+            continue
+        if name == "candidates":
+            options[name] = form.fields[name]
+        elif name == "viewpoint":
+            options[name] = vector(value, name)
+        elif name == "roi":
+            options[name] = box(value)
+        else:
+            options[name] = value
+    return options
+
+
+def box(text: str) -> dict[str, list[float]]:
+    """Six comma-separated finite numbers, min then max corner, or a 422 naming ``roi``."""
+    try:
+        values = [float(part) for part in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 6 or not all(np.isfinite(values)):
+        raise invalid(
+            f"'{text[:60]}' is not six finite numbers min_x,min_y,min_z,max_x,max_y,max_z", "roi"
+        )
+    return {"min": values[:3], "max": values[3:]}
+
+
+def detect_response(scene: SceneAnswer) -> DetectResponse:
+    detections = []
+    for detection in scene.detections:
+        a = detection.answer
+        detections.append(
+            DetectionOut(
+                label=a.label,
+                verdict=a.verdict,
+                confidence=a.confidence,
+                rotation=np.asarray(a.rotation, float).tolist(),
+                translation=np.asarray(a.translation, float).tolist(),
+                transform=transform(a),
+                alignment_error=a.alignment_error,
+                alignment_error_normalized=a.alignment_error_normalized,
+                reasons=a.reasons,
+                ambiguous=a.ambiguous,
+                alternatives=alternatives(a),
+                symmetry=detection.symmetry,
+                num_points=len(detection.indices),
+                indices=detection.indices.tolist(),
+            )
+        )
+    return DetectResponse(
+        detections=detections,
+        num_points=scene.num_points,
+        unexplained=scene.unexplained,
+        supports=[np.asarray(plane, float).tolist() for plane in scene.supports],
+        timings_ms=scene.timings_ms,
+    )

@@ -1,0 +1,107 @@
+"""A camera's whole frame as ``Engine.detect`` sees it: the valid points, where each came from
+in the request, the pixel grid when the frame is organized, and where the camera was.
+
+An organized frame (a depth image, a PCD or NPY of height > 1) keeps its grid: a point's
+``index`` is its pixel, ``row * width + col``, and its neighbours in the image are its
+neighbours on the surface unless the depth jumps. A frame far denser than the decisions need
+is thinned at once (``thinned``): every k-th row and column of an organized frame, one point a
+voxel of any other, so that a camera's resolution costs little.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+@dataclass(frozen=True)
+class Frame:
+    points: np.ndarray  # (N, 3) float64, every one finite
+    index: np.ndarray  # (N,) int64: each point's index in the request (its pixel if organized)
+    shape: tuple[int, int] | None  # (height, width) of an organized frame's grid
+    viewpoint: np.ndarray  # (3,) where the camera was, in the frame's coordinates
+    step: int = 1  # the grid's stride once thinned: every step-th row and column kept
+
+    @classmethod
+    def of(
+        cls,
+        points: np.ndarray,
+        index: np.ndarray | None = None,
+        shape: tuple[int, int] | None = None,
+        viewpoint: np.ndarray | None = None,
+    ) -> Frame:
+        points = np.asarray(points, dtype=np.float64)
+        index = np.arange(len(points)) if index is None else np.asarray(index, np.int64)
+        origin = np.zeros(3) if viewpoint is None else np.asarray(viewpoint, np.float64)
+        return cls(points, index, shape, origin)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def take(self, keep: np.ndarray) -> Frame:
+        """The frame's points where ``keep`` (a mask or indices), with their grid."""
+        return Frame(self.points[keep], self.index[keep], self.shape, self.viewpoint, self.step)
+
+    @property
+    def rows(self) -> np.ndarray:
+        return self.index // self.shape[1]
+
+    @property
+    def columns(self) -> np.ndarray:
+        return self.index % self.shape[1]
+
+    def cropped(self, low: np.ndarray, high: np.ndarray) -> Frame:
+        """Only the points inside the box ``low``-``high`` (the request's ``roi``)."""
+        inside = np.all((self.points >= low) & (self.points <= high), axis=1)
+        return self.take(inside)
+
+    def pixel_angle(self) -> float:
+        """The angle between neighbouring pixels' rays (radians) of the full-resolution grid,
+        from its own horizontal neighbours; for a cloud without a grid, from its spacing."""
+        if self.shape is None or len(self) < 2:
+            return spacing_angle(self.points, self.viewpoint)
+        order = np.argsort(self.index)
+        index, points = self.index[order], self.points[order]
+        beside = np.flatnonzero(np.diff(index) == self.step)
+        if len(beside) < 16:
+            return spacing_angle(self.points, self.viewpoint)
+        rays = points - self.viewpoint
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        cosine = np.einsum("ij,ij->i", rays[beside], rays[beside + 1])
+        return float(np.median(np.arccos(np.clip(cosine, -1.0, 1.0)))) / self.step
+
+    def thinned(self, voxel: float) -> Frame:
+        """At most about one point per ``voxel``: every k-th row and column of an organized
+        frame (k from its pixels' footprint at the median range), one point a voxel of a
+        cloud without a grid. Never denser than it was."""
+        if len(self) == 0 or voxel <= 0:
+            return self
+        if self.shape is not None:
+            footprint = self.pixel_angle() * float(np.median(self.ranges()))
+            step = int(voxel // max(footprint, 1e-12))
+            if step <= 1:
+                return self
+            stride = self.step * step
+            keep = (self.rows % stride == 0) & (self.columns % stride == 0)
+            thin = self.take(keep)
+            return Frame(thin.points, thin.index, self.shape, self.viewpoint, stride)
+        cells = np.floor(self.points / voxel).astype(np.int64)
+        _, first = np.unique(cells, axis=0, return_index=True)
+        return self.take(np.sort(first))
+
+    def ranges(self) -> np.ndarray:
+        """(N,) each point's distance from the camera."""
+        return np.linalg.norm(self.points - self.viewpoint, axis=1)
+
+
+def spacing_angle(points: np.ndarray, viewpoint: np.ndarray, sample: int = 512) -> float:
+    """The median angle, seen from ``viewpoint``, between a point and its nearest neighbour."""
+    if len(points) < 2:
+        return 1e-3
+    rng = np.random.default_rng(0)
+    chosen = points[rng.choice(len(points), size=min(sample, len(points)), replace=False)]
+    distance, _ = cKDTree(points).query(chosen, k=2)
+    ranges = np.linalg.norm(chosen - viewpoint, axis=1)
+    return float(np.median(distance[:, 1] / np.maximum(ranges, 1e-12)))

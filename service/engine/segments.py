@@ -1,0 +1,165 @@
+"""A frame's points, supports set aside, split into segments: groups of points linked to their
+neighbours at the sensor's density. On an organized frame a point's neighbours are its
+neighbouring pixels (linear in the pixels); on another cloud, the points within the link
+distance (a tree). A segment may hold several touching parts, or a part cut in two by a jump
+in depth where it hides itself; ``scene`` handles both.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from service.engine.frame import Frame
+from service.engine.surroundings import groups
+from service.engine.tuning import LINK_FOOTPRINTS, LINK_NOISE, NORMAL_PIXELS, SMOOTH_DEG
+
+# neighbouring pixels linked: right, down, the diagonals, and two along (across a missing one)
+OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1), (0, 2), (2, 0))
+
+
+def segments(frame: Frame, angle: float) -> np.ndarray:
+    """(N,) a segment label per point of ``frame``; ``angle``: the angle between neighbouring
+    pixels' rays at full resolution (``Frame.pixel_angle``)."""
+    if len(frame) == 0:
+        return np.zeros(0, dtype=np.intp)
+    ranges = frame.ranges()
+    if frame.shape is None:
+        link = LINK_FOOTPRINTS * angle * float(np.median(ranges))
+        link += LINK_NOISE * float(np.median(ranges))
+        return groups(frame.points, link)
+    return grid_segments(frame, angle, ranges)
+
+
+def grid_segments(frame: Frame, angle: float, ranges: np.ndarray) -> np.ndarray:
+    """Connected components of the organized frame's pixels, a pixel linked to each of its
+    ``OFFSETS`` neighbours closer than ``LINK_FOOTPRINTS`` of its own footprint (per pixel
+    of offset) plus ``LINK_NOISE`` of its range."""
+    first, second, _ = grid_links(frame, angle, ranges)
+    return components(len(frame), first, second)
+
+
+def grid_links(
+    frame: Frame, angle: float, ranges: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The linked pairs of neighbouring pixels (``grid_segments``), as two index arrays into
+    the frame's points, and each pair's offset length in pixels."""
+    height, width = frame.shape
+    step = frame.step
+    rows, columns = frame.rows // step, frame.columns // step
+    grid_height, grid_width = (height + step - 1) // step, (width + step - 1) // step
+    where = np.full(grid_height * grid_width, -1, dtype=np.intp)
+    where[rows * grid_width + columns] = np.arange(len(frame))
+    footprint = angle * step * ranges
+    firsts, seconds, lengths = [], [], []
+    for down, right in OFFSETS:
+        row, column = rows + down, columns + right
+        inside = (row < grid_height) & (column >= 0) & (column < grid_width)
+        mine = np.flatnonzero(inside)
+        other = where[row[mine] * grid_width + column[mine]]
+        mine, other = mine[other >= 0], other[other >= 0]
+        gap = np.linalg.norm(frame.points[mine] - frame.points[other], axis=1)
+        reach = LINK_FOOTPRINTS * footprint[mine] * np.hypot(down, right)
+        linked = gap < reach + LINK_NOISE * ranges[mine]
+        firsts.append(mine[linked])
+        seconds.append(other[linked])
+        lengths.append(np.full(int(linked.sum()), np.hypot(down, right)))
+    return np.concatenate(firsts), np.concatenate(seconds), np.concatenate(lengths)
+
+
+def components(count: int, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """(count,) a component label per node of the graph of edges ``first``-``second``."""
+    graph = coo_matrix((np.ones(len(first)), (first, second)), shape=(count, count))
+    _, labels = connected_components(graph.tocsr(), directed=False)
+    return labels
+
+
+def patches(frame: Frame, angle: float) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) a segment label and (N,) a patch label per point of an organized frame: a patch
+    is a part of a segment that no concave crease crosses (neighbouring pixels whose normals
+    turn towards each other by more than ``SMOOTH_DEG``): where two parts touch, or one
+    rests on another, the surface folds inwards. The pixels along a crease are cut out, the
+    rest split into components, and each crease pixel given to a neighbouring patch."""
+    ranges = frame.ranges()
+    first, second, _ = grid_links(frame, angle, ranges)
+    labels = components(len(frame), first, second)
+    normals = grid_normals(frame)
+    offset = frame.points[first] - frame.points[second]
+    turned = np.einsum("ij,ij->i", normals[first] - normals[second], offset)
+    cosine = np.einsum("ij,ij->i", normals[first], normals[second])
+    crease = np.isfinite(cosine) & (cosine < np.cos(np.radians(SMOOTH_DEG))) & (turned < 0)
+    on_crease = np.zeros(len(frame), dtype=bool)
+    on_crease[first[crease]] = on_crease[second[crease]] = True
+    clear = ~on_crease[first] & ~on_crease[second]
+    parts = components(len(frame), first[clear], second[clear])
+    for _ in range(2 * NORMAL_PIXELS):  # crease pixels join a neighbouring patch
+        lost = on_crease[first] & ~on_crease[second]
+        parts[first[lost]] = parts[second[lost]]
+        found = np.zeros(len(frame), dtype=bool)
+        found[first[lost]] = True
+        lost = on_crease[second] & ~on_crease[first]
+        parts[second[lost]] = parts[first[lost]]
+        found[second[lost]] = True
+        on_crease &= ~found
+    return labels, parts
+
+
+def grid_normals(frame: Frame) -> np.ndarray:
+    """(N, 3) each pixel's surface normal, towards the camera, from its neighbours
+    ``NORMAL_PIXELS`` away across and down the grid; NaN where one of them is missing."""
+    height, width = frame.shape
+    step, reach = frame.step, NORMAL_PIXELS
+    grid_height, grid_width = (height + step - 1) // step, (width + step - 1) // step
+    image = np.full((grid_height + 2 * reach, grid_width + 2 * reach, 3), np.nan)
+    rows, columns = frame.rows // step + reach, frame.columns // step + reach
+    image[rows, columns] = frame.points
+    across = image[rows, columns + reach] - image[rows, columns - reach]
+    down = image[rows + reach, columns] - image[rows - reach, columns]
+    normals = np.cross(across, down)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        normals = normals / length
+    towards = np.einsum("ij,ij->i", normals, frame.viewpoint - frame.points)
+    return normals * np.where(towards < 0, -1.0, 1.0)[:, None]
+
+
+def adjacent(frame: Frame, labels: np.ndarray, chosen: np.ndarray, reach: int) -> set[tuple]:
+    """Pairs (a, b), a < b, of the ``chosen`` segments that come within ``reach`` pixels of
+    each other in an organized frame's image, whatever the depth between them (a part's near
+    side hides its far side); for a cloud without a grid, within ``reach`` times the median
+    distance between neighbouring points."""
+    pick = np.isin(labels, chosen)
+    if not pick.any():
+        return set()
+    if frame.shape is None:
+        points, mine = frame.points[pick], labels[pick]
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(points)
+        spacing = float(np.median(tree.query(points[:256], k=2)[0][:, 1]))
+        pairs = tree.query_pairs(reach * spacing, output_type="ndarray")
+        a, b = mine[pairs[:, 0]], mine[pairs[:, 1]]
+    else:
+        height, width = frame.shape
+        step = frame.step
+        grid_height, grid_width = (height + step - 1) // step, (width + step - 1) // step
+        image = np.full((grid_height + 2 * reach, grid_width + 2 * reach), -1, dtype=np.intp)
+        image[frame.rows[pick] // step + reach, frame.columns[pick] // step + reach] = labels[pick]
+        core = image[reach:-reach, reach:-reach]
+        a_list, b_list = [], []
+        for down in range(0, reach + 1):
+            for right in range(-reach, reach + 1):
+                if down == 0 and right <= 0:
+                    continue
+                moved = image[
+                    reach + down : reach + down + grid_height,
+                    reach + right : reach + right + grid_width,
+                ]
+                both = (core >= 0) & (moved >= 0) & (core != moved)
+                a_list.append(core[both])
+                b_list.append(moved[both])
+        a, b = np.concatenate(a_list), np.concatenate(b_list)
+    different = a != b
+    low, high = np.minimum(a, b)[different], np.maximum(a, b)[different]
+    return set(zip(low.tolist(), high.tolist(), strict=True))

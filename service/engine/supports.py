@@ -1,0 +1,165 @@
+"""A frame's supports: the largest planes (the table, a bin's floor and walls), set aside with
+what lies behind the first of them, before the parts are looked for.
+
+A plane found by RANSAC is a support when it holds ``SUPPORT_SHARE`` of the frame's points
+and what lies over it is on the camera's side: parts rest on a table, in a bin; but behind a
+part's own face lies the rest of the part (``BEHIND_SHARE``). The first support is the one
+the parts rest on (a table, a bin's floor); what lies beyond it, away from the camera (the
+floor under a table, the table under a bin), is set aside with it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.engine.frame import Frame
+from service.engine.normalize import subsample
+from service.engine.tuning import (
+    BEHIND_SHARE,
+    MAX_SUPPORTS,
+    PLANE_ITERATIONS,
+    SENSOR_NOISE,
+    SUPPORT_CELLS,
+    SUPPORT_NOISE,
+    SUPPORT_SAMPLE,
+    SUPPORT_SHARE,
+    SUPPORT_SPACINGS,
+)
+
+
+@dataclass(frozen=True)
+class Support:
+    plane: np.ndarray  # (4,) n . x = d, the normal towards the camera
+    points: int  # the frame's points on it
+    noise: float  # the robust spread of their distances to it (the sensor's depth noise) ...
+    at_range: float  # ... at this median range from the camera
+
+    def noise_at(self, distance: float) -> float:
+        """The sensor's noise at ``distance`` from the camera, growing with the range."""
+        return self.noise * distance / max(self.at_range, 1e-12)
+
+
+def tolerances(frame: Frame, angle: float) -> np.ndarray:
+    """(N,) how far from a support plane each point of the frame may lie and be on it: some
+    pixel footprints at its range, and the sensor's depth noise."""
+    return frame.ranges() * (SUPPORT_SPACINGS * angle * frame.step + SUPPORT_NOISE)
+
+
+def set_aside_supports(
+    frame: Frame, angle: float, rng: np.random.Generator
+) -> tuple[np.ndarray, list[Support]]:
+    """Which of the frame's points are left once the supports are set aside (a mask), and the
+    supports. ``angle``: the angle between neighbouring pixels' rays (``Frame.pixel_angle``)."""
+    keep = np.ones(len(frame), dtype=bool)
+    supports: list[Support] = []
+    tolerance = tolerances(frame, angle)
+    cell = (
+        SUPPORT_CELLS * angle * frame.step * float(np.median(frame.ranges() if len(frame) else [0]))
+    )
+    for _ in range(MAX_SUPPORTS):
+        rest = np.flatnonzero(keep)
+        if len(rest) < SUPPORT_SHARE * len(frame) or len(rest) < 3:
+            break
+        found = largest_plane(frame.points[rest], tolerance[rest], rng)
+        if found is None or len(found[1]) < SUPPORT_SHARE * len(frame):
+            break
+        plane, on = found
+        plane = plane * (1.0 if plane[:3] @ frame.viewpoint >= plane[3] else -1.0)
+        off = np.setdiff1d(rest, rest[on])
+        if not carries(frame.points[rest[on]], frame.points[off], plane, cell):
+            break  # the largest plane left is a part's face
+        keep[rest[on]] = False
+        if not supports:  # what lies beyond the surface the parts rest on
+            keep &= frame.points @ plane[:3] - plane[3] > -tolerance
+        on_plane = frame.points[rest[on]]
+        residual = on_plane @ plane[:3] - plane[3]
+        spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
+        ranges = np.linalg.norm(on_plane - frame.viewpoint, axis=1)
+        supports.append(Support(plane, len(on), spread, float(np.median(ranges))))
+    return keep, supports
+
+
+def carries(on_plane: np.ndarray, others: np.ndarray, plane: np.ndarray, cell: float) -> bool:
+    """Whether a plane carries what lies over it, as a table does: of the other points over
+    the cells its own points occupy, less than ``BEHIND_SHARE`` lie behind it (away from the
+    camera), as the rest of a part lies behind its face."""
+    if not len(others):
+        return True
+    axes = in_plane(plane[:3])
+    mine = np.floor(on_plane @ axes / cell).astype(np.int64)
+    low = mine.min(axis=0)
+    mine -= low
+    occupied = np.zeros(mine.max(axis=0) + 1, dtype=bool)
+    occupied[mine[:, 0], mine[:, 1]] = True
+    cells = np.floor(others @ axes / cell).astype(np.int64) - low
+    inside = np.all((cells >= 0) & (cells < occupied.shape), axis=1)
+    over = np.zeros(len(others), dtype=bool)
+    over[inside] = occupied[cells[inside, 0], cells[inside, 1]]
+    if not over.any():
+        return True
+    height = others[over] @ plane[:3] - plane[3]
+    return bool(np.mean(height < 0) < BEHIND_SHARE)
+
+
+def in_plane(normal: np.ndarray) -> np.ndarray:
+    """(3, 2) two unit vectors spanning the plane of ``normal``."""
+    helper = np.array([1.0, 0, 0]) if abs(normal[0]) < 0.9 else np.array([0, 1.0, 0])
+    first = np.cross(normal, helper)
+    first /= np.linalg.norm(first)
+    return np.stack([first, np.cross(normal, first)], axis=1)
+
+
+def largest_plane(
+    points: np.ndarray, tolerance: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The plane holding most of ``points`` (each within its own ``tolerance``), by RANSAC on
+    a sample, refitted by least squares to its inliers; and the indices of its inliers."""
+    chosen = subsample(points, SUPPORT_SAMPLE, rng)
+    sample, slack = points[chosen], tolerance[chosen]
+    triples = sample[rng.integers(0, len(sample), size=(PLANE_ITERATIONS, 3))]
+    normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
+    length = np.linalg.norm(normals, axis=1)
+    good = length > 1e-12
+    if not good.any():
+        return None
+    normals = normals[good] / length[good, None]
+    offsets = np.einsum("ij,ij->i", normals, triples[good, 0])
+    votes = (np.abs(sample @ normals.T - offsets) < slack[:, None]).sum(axis=0)
+    best = int(votes.argmax())
+    on = np.flatnonzero(np.abs(points @ normals[best] - offsets[best]) < tolerance)
+    if len(on) < 3:
+        return None
+    centre = points[on].mean(axis=0)
+    normal = np.linalg.svd(points[on] - centre, full_matrices=False)[2][2]
+    plane = np.append(normal, normal @ centre)
+    on = np.flatnonzero(np.abs(points @ plane[:3] - plane[3]) < tolerance)
+    return plane, on
+
+
+def apply_supports(frame: Frame, supports: list[Support], angle: float) -> np.ndarray:
+    """Which of the frame's points are left once the ``supports`` found on a thinned copy of
+    it are set aside (a mask), as ``set_aside_supports`` sets them aside."""
+    tolerance = tolerances(frame, angle)
+    keep = np.ones(len(frame), dtype=bool)
+    for k, support in enumerate(supports):
+        height = frame.points @ support.plane[:3] - support.plane[3]
+        keep &= np.abs(height) >= tolerance
+        if k == 0:
+            keep &= height > -tolerance
+    return keep
+
+
+@dataclass(frozen=True)
+class Noise:
+    """The sensor's depth noise where points lie: measured on the support the parts rest on,
+    grown with the range; without one, ``SENSOR_NOISE`` of the range."""
+
+    support: Support | None
+
+    def at(self, points: np.ndarray, viewpoint: np.ndarray) -> float:
+        distance = float(np.median(np.linalg.norm(points - viewpoint, axis=1)))
+        if self.support is None:
+            return SENSOR_NOISE * distance
+        return self.support.noise_at(distance)

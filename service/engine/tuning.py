@@ -1,0 +1,109 @@
+"""Every tunable of the engine that is not a setting (``service.settings.EngineSettings``), in
+one place, grouped by the step of the chain it tunes. Why each value is what it is, with the
+figures that chose it: docs/decisions.md, under the step's heading."""
+
+from __future__ import annotations
+
+# --- 0. Surroundings: the support plane and stray points (docs/decisions.md#surroundings) ---------
+SURROUNDINGS_SAMPLE = 1024  # decisions are made on a sample of this many points
+PLANE_SHARE = 0.2  # a support plane holds at least this share of the points ...
+PLANE_SHARE_BLIND = 0.5  # ... this share, when the viewpoint is not known
+PLANE_REACH = 1.5  # ... reaches this many times the rest's radius from the rest's centroid
+ONE_SIDE = 0.95  # ... has this share of the rest on one side of it
+BEYOND = 0.5  # ... has this share of its points beyond the part's footprint
+AROUND = 9  # ... in at least this many of 12 directions around it
+PLANE_ITERATIONS = 96  # RANSAC draws for the largest plane
+PLANE_SCORED = 256  # points the candidate planes are scored on
+PLANE_SPACINGS = 1.5  # plane inliers lie within this many spacings of it
+THICKNESS = 4.0  # a table: within this many robust standard deviations of its fitted plane
+LINK_SPACINGS = 3.0  # neighbours closer than this many spacings are one group
+STRAY_SHARE = 0.02  # a group of less than this share of the points ...
+STRAY_GAP = 10.0  # ... this many spacings from any larger group is stray
+
+# --- 3-4. Grid and classify (docs/decisions.md#classify) ------------------------------------------
+POOL = 2  # eq. (4)'s input: grid bins pooled per side after smoothing
+VIEW_POOL = 4  # nearest-view features: the smoothed grid pooled 4x4 (to 16x16 = 256 values)
+VIEW_POINTS = 512  # a rendered view's grid is made of at most this many of its points
+FIRST_LEAD = 2.0  # eq. (4) is sure of its first choice at this many times the next score
+
+# --- 5. Hypothesise (docs/decisions.md#hypothesise) -----------------------------------------------
+VIEWPOINT_AGREEMENT_DEG = 50.0  # a view hypothesis's camera within this of the viewpoint's
+ROUND_SPREADS = 0.1  # two principal spreads this close: a round or square section ...
+ROUND_TURN_DEG = 45.0  # ... whose principal-axes matches are also turned by every this much
+QUICK_POINTS = 24  # observed and expected points of the quick look that screens hypotheses
+WHOLE_SCREENED = 4  # principal-axes hypotheses verified in the whole-part pass (4 sign flips)
+
+# --- 6. Verify (docs/decisions.md#verify) ---------------------------------------------------------
+EXPECTED = 128  # expected-visible points drawn per rendered view for coverage
+OCCUPANCY_SPACINGS = 1.5  # the occupancy's voxel is at least this many observed spacings
+PATCH_SPACINGS = 2.5  # a sample's tangent patch reaches this many sample spacings
+FIELD_RESOLUTION = 40  # distance-field voxels along the reference's longest side
+FIELD_MARGIN = 0.3  # the field reaches this share of the scale beyond the bounding box
+
+# --- 7. Refine (docs/decisions.md#refine) ---------------------------------------------------------
+WHOLE_REFINED = 2  # hypotheses refined in each whole-part pass
+ENOUGH_BEHIND = 0.8  # a hypothesis this far below an excellent refined one is not refined
+FAR_BELOW = 0.5  # nor one below this share of the best hypothesis before refining
+PER_PART = 2  # hypotheses refined of one part in a pass
+FIRST_REFINED = 1  # hypotheses of eq. (4)'s sure first choice refined in any case
+RESCUE_BELOW = 0.7  # no refined fit x coverage this high: more parts are rescued
+RESCUE_EACH = 2  # hypotheses refined of each rescued part
+SURFACE_NEIGHBOURS = 8  # a sample's neighbours searched when correcting the field's answer
+BEHIND = 1.0  # a point more sample spacings than this behind a tangent plane is not on it
+CLOSE_RAD, CLOSE = 0.01, 0.5  # steps this small switch to the corrected nearest samples
+BACK_FACING = 0.2  # a sample whose normal's cosine to the camera is under -this faces away
+NORMAL_NEIGHBOURS = 16  # points in the plane fitted for an estimated normal
+# near-symmetries: turned poses screened on the field, then on the corrected distance
+NEAR_PRESCREENED = 32
+NEAR_SCREENED = 8
+SCREEN_ALIKE = 1.5  # a turned pose this much farther before refining is not refined
+RESIDUAL_ALIKE = 1.15  # a turned pose this much farther from the surface is no alternative
+
+# --- 8. Decide (docs/decisions.md#decide) ---------------------------------------------------------
+DIFFERENT_DEG = 10.0  # poses this far apart (symmetry accounted for) are different answers
+ALIKE = 0.9  # ... and fit alike within this share of the best's fit x coverage
+MAX_ALTERNATIVES = 3
+# another pose closer than this share of the scale is no doubt: the answer would still be
+# precise (ADD-S under 0.02 of the diameter) were it the truth
+RIGHT_EITHER_WAY = 0.02
+FLAT = 0.03  # an observation this flat (smallest over largest principal spread) is one face
+POOR_FIT = 0.8  # an answer whose part holds less of the cloud may be a cloud in other units
+
+# --- Registration: what one camera sees (docs/decisions.md#registration) --------------------------
+HPR_LOG_RADIUS = 2.8  # hidden-point removal's flipping sphere: 10**this times the extent
+
+# --- Whole frames: supports, segments, instances (docs/decisions.md#detect) ----------------------
+THIN_PER_SCALE = 20  # a frame is thinned to a voxel of the smallest part's scale over this
+SUPPORT_SAMPLE = 2048  # points the support planes are found on
+SUPPORT_SHARE = 0.03  # a support holds at least this share of the frame's points ...
+BEHIND_SHARE = 0.2  # ... and has less than this share of what lies over it behind it
+SUPPORT_CELLS = 4.0  # what lies over a plane: over its cells of this many pixel footprints
+SUPPORT_SPACINGS = 2.0  # its points lie within this many pixel footprints of it ...
+SUPPORT_NOISE = 0.004  # ... plus this share of their range (the sensor's depth noise)
+MAX_SUPPORTS = 6  # a bin's floor and four walls, and the table beside it
+LINK_FOOTPRINTS = 3.0  # neighbouring pixels this many footprints apart are one segment ...
+LINK_NOISE = 0.004  # ... plus this share of their range
+MIN_SEGMENT = 60  # a segment (or what is left of it) of fewer points is not searched
+MIN_EXPLAINED = 40  # an instance explains at least this many of its segment's points
+MAX_TRIES = 4  # instances looked for in one segment, at most
+CLAIM_TOLERANCE = 1.5  # an instance claims the points within this many tolerances of it
+KEEP_SHARE = 0.5  # an instance left with less of its claim after the global check goes
+JOIN_PIXELS = 3  # segments where nothing was found are joined with those this near
+INSTANCE_FLOOR = 0.5  # an answer less confident than this is no instance of a part
+NORMAL_PIXELS = 2  # a pixel's normal from its neighbours this many pixels away
+SMOOTH_DEG = 25.0  # neighbours whose normals turn towards each other by more: a crease
+SEED_SPACING = 0.35  # a part's views are placed at seeds this many scales apart ...
+MAX_SEEDS = 24  # ... at most this many over a segment
+TEMPLATE_ANGLES = 12  # ... turned about the line of sight this many times
+TEMPLATE_POINTS = 24  # ... screened on this many of each view's expected points
+TEMPLATE_TOLERANCE = 0.1  # ... within this share of the part's scale
+TEMPLATE_REFINED = 8  # the best placed views refined (per seed kept, then overall)
+TEMPLATE_PARTS = 3  # parts whose views are placed over a segment where the chain found none
+PINHOLE_RESIDUAL_PX = 0.75  # a frame whose pixels fit a pinhole this well has a depth image
+RANK_EVERY, RANK_ANGLES, RANK_SEEDS = 4, 8, 3  # ... which parts: every 4th view, 8 turns, 3 seeds
+TEMPLATE_SIZES = (0.25, 1.15)  # ... of a scale this share of the segment's radius
+NOISE_TOLERANCES = 2.0  # a fit's tolerance is at least this many times the sensor's noise
+SENSOR_NOISE = 0.0015  # the depth noise's share of the range where no support measures it
+SEED_SAMPLE = 2048  # seeds are spread over a sample of this many of a segment's points
+TEMPLATE_ICP_POINTS = 384  # a placed view is refined on this many of the points around it
+SEGMENT_POINTS = 4096  # the chain answers a segment from this many of its points at most
