@@ -26,7 +26,7 @@ from service.client.errors import ServiceError, Unreachable, error_for
 from service.client.retry import RETRY_STATUSES, Retry
 
 RAW = "application/octet-stream"
-COPY_TYPE = "application/vnd.sqlite3"  # a gallery's copy (backup, export)
+COPY_TYPE = RAW  # a gallery's copy (an SQLite file), sent as its bytes
 DEFAULT_URL = "http://127.0.0.1:8000"
 PointsOrPath = np.ndarray | Sequence[Sequence[float]] | str | Path
 

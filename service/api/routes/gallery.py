@@ -20,7 +20,7 @@ from starlette.background import BackgroundTask
 from service.api.auth import AdminAccess
 from service.api.dependencies import CatalogDep, LimiterDep, SettingsDep
 from service.api.limiter import Job
-from service.api.routes.common import errors, invalid
+from service.api.routes.common import RAW, errors, invalid
 from service.api.routes.references import answer_of
 from service.api.schemas import ReferenceResponse
 from service.gallery import backup
@@ -34,9 +34,9 @@ COPY_ANSWER = {
         "description": "the copy: an SQLite gallery file; X-References says how many it holds",
     }
 }
-COPY_BODY = {
+COPY_BODY = {  # the file's bytes as they are, whatever the Content-Type says
     "required": True,
-    "content": {backup.MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
+    "content": {RAW: {"schema": {"type": "string", "format": "binary"}}},
 }
 
 
