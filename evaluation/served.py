@@ -58,9 +58,10 @@ class ServiceProcess:
         ready_timeout: float = 120.0,
         inherit: bool = False,
         wait: bool = True,
+        port: int | None = None,  # default: a free one (a replica started again: its old one)
         **settings: str,
     ):
-        self.port = free_port()
+        self.port = port or free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.log_path = Path(log_path)
         self.log_path.parent.mkdir(parents=True, exist_ok=True)

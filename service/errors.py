@@ -22,3 +22,7 @@ class ReferenceExists(RuntimeError):
 
 class StoreUnavailable(RuntimeError):
     """The gallery's database cannot be reached or used right now (503); worth a retry."""
+
+
+class StoreFull(RuntimeError):
+    """The gallery's disk (or database) has no room for a write (507); nothing was stored."""

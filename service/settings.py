@@ -87,6 +87,9 @@ class GallerySettings(BaseModel):
     poll_s: float = Field(0.25, gt=0)  # how often a replica checks for others' changes anyway
     listen: bool = True  # PostgreSQL LISTEN/NOTIFY (off behind a pooler in transaction mode)
     pool_size: int = Field(4, ge=1)  # PostgreSQL connections per replica
+    # how long a request waits for a PostgreSQL connection while the database is out of reach
+    # (a registration then answers 503 with the reason; an alignment never waits for it)
+    connect_timeout_s: float = Field(5.0, gt=0)
     reference_points: int = Field(2048, ge=64)  # a mesh upload is sampled to this many points
     max_references: int = Field(1000, ge=1)
     self_check_poses: int = Field(3, ge=0)  # poses a registration is checked on (0: no check)
@@ -105,6 +108,9 @@ class LimitSettings(BaseModel):
     max_points: int = Field(2048 * 1536, ge=1)
     # a 2,048 x 1,536 binary PCD of x y z rgb floats (binary_compressed: less)
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024)
+    # the bulk routes' body: a batch of parts (POST /references/batch), a gallery's backup or
+    # export (POST /gallery/restore, /gallery/import: about 0.6 MB a reference)
+    max_bulk_bytes: int = Field(1024 * 1024 * 1024, ge=1024)
     request_timeout_s: float = Field(30.0, gt=0)  # the engine's work for one request; then 504
     max_concurrent_align: int | None = Field(None, ge=1)  # default: server.workers_threads
     queue_timeout_s: float = Field(5.0, ge=0)  # wait for a free slot; then 503 + Retry-After

@@ -185,7 +185,9 @@ def test_register_replace_and_delete(api):
     assert any("symmetry" in warning for warning in body["warnings"])
 
     again = api.post("/references", json={"name": "box-a", "points": points.tolist()})
-    assert again.status_code == 409 and "box-a" in detail(again)
+    assert again.status_code == 200 and again.json()["outcome"] == "identical"  # safe to resend
+    other = api.post("/references", json={"name": "box-a", "points": (points * 1.5).tolist()})
+    assert other.status_code == 409 and "box-a" in detail(other)
     bigger = (points * 2).tolist()
     replaced = api.post("/references?replace=true", json={"name": "box-a", "points": bigger})
     assert replaced.status_code == 200 and replaced.json()["scale"] == pytest.approx(2 * radius)

@@ -128,7 +128,7 @@ def test_errors_carry_the_service_s_detail(client):
         client.register("not a name!", np.random.default_rng(0).normal(size=(100, 3)))
     with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
         client.align(np.zeros((10, 2)))
-    with Client(f"http://127.0.0.1:{free_port()}", timeout=2) as nobody:
+    with Client(f"http://127.0.0.1:{free_port()}", timeout=2, retry_for=0) as nobody:
         with pytest.raises(Unreachable, match="cannot reach"):
             nobody.references()
 

@@ -65,12 +65,12 @@ def test_a_change_the_engine_cannot_follow_is_undone_in_the_store(tmp_path, monk
     store = SQLiteStore.in_dir(tmp_path)
     catalog = Catalog(Engine(Mapper(MODEL.path), EngineSettings(view_grids=2)), store, 10)
     catalog.register("kept", cloud(1))
-    original = catalog.engine.add
+    original = catalog.engine.add_many
 
     def refuse(*args):
         raise RuntimeError("the engine failed")
 
-    monkeypatch.setattr(catalog.engine, "add", refuse)
+    monkeypatch.setattr(catalog.engine, "add_many", refuse)
     with pytest.raises(RuntimeError, match="engine failed"):
         catalog.register("new", cloud(2))
     with pytest.raises(RuntimeError, match="engine failed"):
@@ -78,7 +78,7 @@ def test_a_change_the_engine_cannot_follow_is_undone_in_the_store(tmp_path, monk
     (record,) = store.load_records()
     assert record.reference.name == "kept"
     assert sha(record.reference.points) == sha(cloud(1))
-    monkeypatch.setattr(catalog.engine, "add", original)
+    monkeypatch.setattr(catalog.engine, "add_many", original)
     monkeypatch.setattr(catalog.engine, "remove", refuse)
     with pytest.raises(RuntimeError, match="engine failed"):
         catalog.remove("kept")

@@ -32,7 +32,7 @@ from service.api import auth, logs, startup
 from service.api.dependencies import Loading, NotReady
 from service.api.limiter import Busy, Limiter, TimedOut
 from service.api.recent import RecentAlignments
-from service.api.routes import align, alignments, detect, health, points, references
+from service.api.routes import align, alignments, detect, gallery, health, points, references
 from service.api.routes.common import UnsupportedMediaType
 from service.api.schemas import (
     AlignOptions,
@@ -48,12 +48,14 @@ from service.errors import (
     EmptyGallery,
     InvalidPoints,
     ReferenceExists,
+    StoreFull,
     StoreUnavailable,
     UnknownReference,
 )
+from service.gallery.backup import BackupInvalid
 from service.gallery.catalog import Catalog, GalleryFull
 from service.gallery.follower import follow
-from service.gallery.store import GalleryStore, StoreCorrupted, StoreIncompatible
+from service.gallery.store import GalleryStore, StoreCorrupted, StoreIncompatible, StoreNotEmpty
 from service.settings import Settings
 
 log = logging.getLogger("service")
@@ -69,9 +71,12 @@ STATUS = {  # the one status code of each error the engine, store and routes rai
     EmptyGallery: 409,
     ReferenceExists: 409,
     GalleryFull: 409,
+    StoreNotEmpty: 409,  # a restore into a gallery that holds references
+    BackupInvalid: 422,  # not a usable copy of a gallery: the detail names the problem
     UnsupportedMediaType: 415,
     NotReady: 503,
     StoreUnavailable: 503,  # the gallery's database is out of reach: a write may be retried
+    StoreFull: 507,  # no room on the gallery's disk: nothing stored, reads still served
     Busy: 503,  # with Retry-After
     TimedOut: 504,
 }
@@ -111,6 +116,7 @@ def create_app(
         points.router,
         alignments.router,
         references.router,
+        gallery.router,
         health.router,
     )
     for router in routers:
@@ -118,7 +124,8 @@ def create_app(
     if settings.console.enabled:
         _add_console(app)
     _add_error_handlers(app)
-    app.add_middleware(BodyLimit, max_bytes=settings.limits.max_body_bytes)
+    bulk = dict.fromkeys(BULK_ROUTES, settings.limits.max_bulk_bytes)
+    app.add_middleware(BodyLimit, max_bytes=settings.limits.max_body_bytes, larger=bulk)
     _add_metrics(app)  # counts every answer, the 413s included
     app.add_middleware(logs.RequestLog)  # outermost: every answer has a request id
     app.openapi = lambda: _openapi(app)
@@ -217,16 +224,25 @@ def _load(catalog: Catalog, settings: Settings, loading: Loading) -> bool:
     return loading.ready
 
 
-class BodyLimit:
-    """413 for a body over ``max_bytes``: by its Content-Length, or by the bytes actually read."""
+BULK_ROUTES = ("/references/batch", "/gallery/restore", "/gallery/import")
 
-    def __init__(self, app: ASGIApp, max_bytes: int):
+
+class BodyLimit:
+    """413 for a body over ``max_bytes`` (on the paths of ``larger``, their limit): by its
+    Content-Length, or by the bytes actually read."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int, larger: dict[str, int] | None = None):
         self.app = app
         self.max_bytes = max_bytes
+        self.larger = larger or {}
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
+            return
+        if scope["path"] in self.larger:
+            limited = BodyLimit(self.app, self.larger[scope["path"]])
+            await limited(scope, receive, send)
             return
         declared = dict(scope["headers"]).get(b"content-length")
         if declared is not None:
@@ -331,7 +347,9 @@ def _add_console(app: FastAPI) -> None:
 
 
 def _add_metrics(app: FastAPI) -> None:
-    """Prometheus at ``/metrics``: requests, latencies and status codes per route, references."""
+    """Prometheus at ``/metrics``: requests, latencies and status codes per route, references,
+    and the writes (registrations, deletions, restores) being worked on: what a replica held
+    when it died."""
     registry = CollectorRegistry()  # one per app, so several apps can live in one process
     Instrumentator(
         should_group_status_codes=False,
@@ -347,6 +365,12 @@ def _add_metrics(app: FastAPI) -> None:
         ["verdict"],
         registry=registry,
     )
+    writes = Gauge(
+        "dpc_writes_in_progress",
+        "Registrations, deletions, restores and imports being worked on",
+        registry=registry,
+    )
+    writes.set_function(lambda: getattr(getattr(app.state, "limiter", None), "writing", 0))
 
 
 def _document_auth(document: dict[str, Any], settings: Settings) -> None:
@@ -395,6 +419,24 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
                 "type": "string",
                 "format": "binary",
                 "description": "a mesh (.stl, .obj, .ply) or a cloud (.ply, .pcd, .npy)",
+            },
+        },
+    }
+    schemas["ReferenceBatch"] = {
+        "title": "ReferenceBatch",
+        "type": "object",
+        "required": ["file"],
+        "additionalProperties": False,
+        "properties": {
+            "file": {
+                "type": "array",
+                "items": {"type": "string", "format": "binary"},
+                "description": "one mesh or cloud a part (repeat the field)",
+            },
+            "name": {
+                "type": "array",
+                "items": name,
+                "description": "one a file, in order (default: each file's name without suffix)",
             },
         },
     }

@@ -74,6 +74,7 @@ class Limiter:
         self.align_slots = align_slots
         self.queue_timeout_s = queue_timeout_s
         self.request_timeout_s = request_timeout_s
+        self.writing = 0  # write requests waiting for the lane or in it (a metric)
         self._align = asyncio.Semaphore(align_slots)
         self._write = asyncio.Semaphore(WRITE_SLOTS)
         # as many threads as slots: a job that holds a slot always finds a thread
@@ -82,14 +83,20 @@ class Limiter:
     async def align(self, work: Callable[..., T], *args: Any) -> T:
         """``work(*args)`` in an alignment slot, within the budget."""
         await self._acquire(self._align, self.queue_timeout_s, "alignment")
-        return await self._run(self._align, None, work, *args)
+        return await self._run(self._align, None, work, *args, budget_s=self.request_timeout_s)
 
-    async def write(self, work: Callable[..., T], *args: Any) -> T:
+    async def write(self, work: Callable[..., T], *args: Any, budget_s: float | None = None) -> T:
         """``work(job, *args)`` in the write lane; ``work`` calls ``job.commit()`` before it
-        stores anything. Waiting for the lane counts against the budget."""
-        await self._acquire(self._write, self.request_timeout_s, "write")
-        job = Job()
-        return await self._run(self._write, job, work, job, *args)
+        stores anything. Waiting for the lane counts against the budget (``budget_s``, by
+        default the request's: a batch of parts gets one a part)."""
+        budget = budget_s or self.request_timeout_s
+        self.writing += 1
+        try:
+            await self._acquire(self._write, budget, "write")
+            job = Job()
+            return await self._run(self._write, job, work, job, *args, budget_s=budget)
+        finally:
+            self.writing -= 1
 
     def close(self) -> None:
         """Stop taking work; threads still running finish on their own."""
@@ -107,7 +114,12 @@ class Limiter:
             ) from None
 
     async def _run(
-        self, slots: asyncio.Semaphore, job: Job | None, work: Callable[..., T], *args: Any
+        self,
+        slots: asyncio.Semaphore,
+        job: Job | None,
+        work: Callable[..., T],
+        *args: Any,
+        budget_s: float,
     ) -> T:
         """Run in a thread holding an acquired slot; the slot is freed when the thread ends."""
         loop = asyncio.get_running_loop()
@@ -118,12 +130,12 @@ class Limiter:
             raise
         future.add_done_callback(lambda _: _call_soon(loop, slots.release))
         try:
-            async with asyncio.timeout(self.request_timeout_s):
+            async with asyncio.timeout(budget_s):
                 return await asyncio.shield(asyncio.wrap_future(future))
         except TimeoutError:
             if job is None or job.abandon():
                 raise TimedOut(
-                    f"the request took longer than its budget of {self.request_timeout_s:g} s "
+                    f"the request took longer than its budget of {budget_s:g} s "
                     "and was abandoned (nothing was changed); send fewer points or retry later"
                 ) from None
         # the write committed before the budget ran out: its outcome is the answer

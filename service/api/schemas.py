@@ -258,10 +258,25 @@ class ReferenceResponse(ReferenceInfo):
         description="what the check found that an operator should know: renders answered as "
         "another part, poses off by more than 5 degrees, a symmetry",
     )
+    outcome: Literal["created", "replaced", "identical"] | None = Field(
+        None,
+        description="registration only: 'created' (201), 'replaced' (200, ?replace=true), or "
+        "'identical' (200: that name already holds the same points, same points_sha256; "
+        "nothing was computed or changed, so sending a registration again is safe)",
+    )
+    message: str | None = Field(None, description="'already registered, identical: ...'")
 
 
 class ReferenceList(BaseModel):
     references: list[ReferenceInfo]
+
+
+class ReferenceBatchResponse(BaseModel):
+    references: list[ReferenceResponse] = Field(description="one a part, in the order sent")
+    refits: int = Field(
+        description="refits of the classifier the batch took: 1, or 0 if every "
+        "part was already registered, identical"
+    )
 
 
 class RecentAlignment(BaseModel):

@@ -27,7 +27,7 @@ import onnxruntime as ort
 from service.engine.confidence import Calibration
 from service.engine.hypotheses import SOURCES
 from service.engine.mapping import Mapper, file_sha256
-from service.errors import StoreUnavailable
+from service.errors import StoreFull, StoreUnavailable
 from service.gallery.sqlite_store import FILENAME
 from service.gallery.store import GalleryStore, StoreIncompatible, open_store
 from service.settings import GallerySettings, Settings
@@ -59,6 +59,11 @@ def open_gallery_store(gallery: GallerySettings) -> GalleryStore:
         store.check()
     except StoreIncompatible as error:
         raise StartupError(str(error)) from None
+    except StoreFull as error:
+        raise StartupError(
+            f"cannot open the gallery in {gallery.data_dir}: its disk is full ({error.__cause__}):"
+            " free space there, then start again"
+        ) from None
     except StoreUnavailable as error:
         if not gallery.url:
             raise StartupError(f"cannot open the gallery in {gallery.data_dir}: {error}") from None

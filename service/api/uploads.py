@@ -73,6 +73,33 @@ async def read_form(
     return Form(found, dict(texts))
 
 
+async def read_parts(
+    request: Request, max_files: int
+) -> tuple[list[tuple[bytes, str | None]], list[str]]:
+    """A batch's multipart body: its ``file`` fields (each a mesh or cloud), in order, and its
+    ``name`` fields (none: each part is named for its file); 422 as ``read_form``."""
+    files: list[tuple[bytes, str | None]] = []
+    names: list[str] = []
+    try:
+        async with request.form(max_files=max_files, max_fields=max_files) as form:
+            known_fields(form.keys(), ("file", "name"))
+            for key, value in form.multi_items():
+                if (key == "file") != isinstance(value, UploadFile):
+                    raise invalid(f"send '{key}' as {'a file' if key == 'file' else 'text'}", key)
+                if isinstance(value, UploadFile):
+                    files.append((await value.read(), value.filename))
+                else:
+                    names.append(value)
+    except HTTPException as error:
+        raise invalid(
+            f"the multipart body is unusable ({error.detail}): send up to {max_files} 'file' "
+            "fields, and optionally as many 'name' fields"
+        ) from None
+    if not files:
+        raise invalid("upload the parts' meshes or clouds as 'file' fields", "file")
+    return files, names
+
+
 def form_points(form: Form, settings: Settings) -> tuple[np.ndarray, list[float] | None]:
     """The checked points of the form's ``file`` (float32), and the viewpoint the file
     implies: the origin for a depth image, else None."""

@@ -1,13 +1,20 @@
 """``dpc-mn``: the service from a shell, through ``service.client.Client``.
 
     dpc-mn register bracket.stl --name bracket-a
+    dpc-mn register parts/                      # every mesh in the folder: one request, one refit
     dpc-mn align scan.pcd --candidates bracket-a
     dpc-mn align depth.png --fx 300 --fy 300 --cx 160 --cy 120 --mask part.png --json
     dpc-mn references
+    dpc-mn backup gallery.sqlite3               # a consistent copy while the service serves
+    dpc-mn restore gallery.sqlite3              # into an empty gallery, every row checked
+    dpc-mn export cell-4.sqlite3 --names bracket-a,bracket-b
+    dpc-mn import cell-4.sqlite3 --url http://new-line:8000
     dpc-mn serve --port 9000
 
-Every command takes ``--url`` (``DPCMN_URL``), ``--api-key`` (``DPCMN_API_KEY``) and ``--json``
-(the service's answer as JSON on stdout, for scripts; errors too). Exit status: see ``EPILOG``.
+Every command takes ``--url`` (``DPCMN_URL``), ``--api-key`` (``DPCMN_API_KEY``), ``--json``
+(the service's answer as JSON on stdout, for scripts; errors too) and ``--retry-for`` (seconds
+within which a call is sent again after a connection error, a 502 or a 503; every command's
+call is safe to send again). Exit status: see ``EPILOG``.
 """
 
 from __future__ import annotations
@@ -17,6 +24,7 @@ import json
 import os
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 from service.client.answers import Pose, Reference
@@ -31,6 +39,7 @@ EPILOG = """exit status:
   3  align answered, but the verdict is "uncertain" or "no_match"
   4  the service could not be reached"""
 URL_ENV, KEY_ENV = "DPCMN_URL", "DPCMN_API_KEY"
+PART_SUFFIXES = (".stl", ".obj", ".ply", ".pcd", ".npy", ".off", ".glb", ".gltf")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -38,7 +47,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     if arguments.command == "serve":
         serve(arguments)  # does not return
     try:
-        with Client(arguments.url, arguments.api_key, arguments.timeout) as client:
+        with Client(
+            arguments.url,
+            arguments.api_key,
+            arguments.timeout,
+            retry_for=arguments.retry_for,
+            on_retry=say_retry,
+        ) as client:
             return arguments.run(client, arguments)
     except ServiceError as error:
         return report_error(error, arguments.json)
@@ -59,6 +74,14 @@ def parser() -> argparse.ArgumentParser:
         help=f"an API key, sent as 'Authorization: Bearer' (${KEY_ENV})",
     )
     common.add_argument("--timeout", type=float, default=60.0, help="seconds (default 60)")
+    common.add_argument(
+        "--retry-for",
+        type=float,
+        default=30.0,
+        metavar="SECONDS",
+        help="send a call again after a connection error, 502 or 503 within this time "
+        "(default 30; 0: never)",
+    )
     common.add_argument("--json", action="store_true", help="print the answer as JSON")
     formatter = argparse.RawDescriptionHelpFormatter
     top = argparse.ArgumentParser(
@@ -100,9 +123,17 @@ def parser() -> argparse.ArgumentParser:
     align.add_argument("--depth-scale", type=float, help="depth image: scene units per value")
     align.add_argument("--mask", help="depth image: an image of the same size; 0 leaves out")
 
-    register = command("register", run_register, "Register a part from a mesh or cloud file")
-    register.add_argument("file", help="a mesh (.stl, .obj, .ply) or a cloud (.ply, .pcd, .npy)")
-    register.add_argument("--name", required=True, help="1-64 characters of A-Z a-z 0-9 . _ -")
+    register = command(
+        "register", run_register, "Register a part from a mesh or cloud file, or a folder of them"
+    )
+    register.add_argument(
+        "file",
+        help="a mesh (.stl, .obj, .ply) or a cloud (.ply, .pcd, .npy), or a folder of them: "
+        "every part in one request (all or none), each named for its file",
+    )
+    register.add_argument(
+        "--name", help="1-64 characters of A-Z a-z 0-9 . _ - (default: the file's name)"
+    )
     register.add_argument("--replace", action="store_true", help="replace a part of that name")
     register.add_argument(
         "--no-self-check", dest="self_check", action="store_false", help="skip the self-check"
@@ -112,6 +143,21 @@ def parser() -> argparse.ArgumentParser:
     delete = command("delete", run_delete, "Remove a registered part")
     delete.add_argument("name")
     command("health", run_health, "The service's status, model and number of references")
+    backup = command("backup", run_backup, "A consistent copy of the gallery, while it serves")
+    backup.add_argument("file", help="where to write the copy (an SQLite file)")
+    restore = command("restore", run_restore, "Restore a backup into an empty gallery")
+    restore.add_argument("file", help="a copy written by dpc-mn backup")
+    restore.add_argument(
+        "--replace", action="store_true", help="replace every reference the gallery holds"
+    )
+    export = command("export", run_export, "Copy chosen references, for another service")
+    export.add_argument("file", help="where to write the copy (an SQLite file)")
+    export.add_argument("--names", type=names, required=True, help="comma-separated")
+    imported = command("import", run_import, "Add the references of an export")
+    imported.add_argument("file", help="a copy written by dpc-mn export (or backup)")
+    imported.add_argument(
+        "--replace", action="store_true", help="replace references of those names"
+    )
 
     serve_command = command("serve", None, "Start the service (as python -m service)")
     serve_command.add_argument("--host", help="address to listen on (DPC_SERVER__HOST)")
@@ -139,10 +185,66 @@ def run_align(client: Client, arguments: argparse.Namespace) -> int:
 
 
 def run_register(client: Client, arguments: argparse.Namespace) -> int:
-    reference = client.register(
-        arguments.name, arguments.file, replace=arguments.replace, self_check=arguments.self_check
-    )
-    print(json.dumps(reference.raw) if arguments.json else describe_reference(reference))
+    source = Path(arguments.file)
+    if source.is_dir():
+        if arguments.name:
+            raise ServiceError("--name names one part: leave it out to register a folder")
+        parts = sorted(p for p in source.iterdir() if p.suffix.lower() in PART_SUFFIXES)
+        if not parts:
+            raise ServiceError(f"no mesh or cloud file ({', '.join(PART_SUFFIXES)}) in {source}")
+        references = client.register_many(
+            parts, replace=arguments.replace, self_check=arguments.self_check
+        )
+    else:
+        name = arguments.name or source.stem
+        references = [
+            client.register(
+                name, source, replace=arguments.replace, self_check=arguments.self_check
+            )
+        ]
+    if arguments.json:
+        raw = [r.raw for r in references]
+        print(json.dumps(raw[0] if not source.is_dir() else {"references": raw}))
+    else:
+        print("\n".join(describe_reference(reference) for reference in references))
+    return OK
+
+
+def run_backup(client: Client, arguments: argparse.Namespace) -> int:
+    count = client.backup(arguments.file)
+    said = {"file": arguments.file, "references": count}
+    print(json.dumps(said) if arguments.json else f"{count} references copied to {arguments.file}")
+    return OK
+
+
+def run_export(client: Client, arguments: argparse.Namespace) -> int:
+    count = client.export(arguments.file, arguments.names)
+    said = {"file": arguments.file, "references": count}
+    print(json.dumps(said) if arguments.json else f"{count} references copied to {arguments.file}")
+    return OK
+
+
+def run_restore(client: Client, arguments: argparse.Namespace) -> int:
+    answer = client.restore(arguments.file, replace=arguments.replace)
+    if arguments.json:
+        print(json.dumps(answer))
+    elif answer["outcome"] == "identical":
+        print(f"the gallery holds the copy's {answer['restored']} references already")
+    else:
+        print(
+            f"restored {answer['restored']} references from {arguments.file}; every row's "
+            f"checksum and points_sha256 checked ({answer['checked']})"
+        )
+    return OK
+
+
+def run_import(client: Client, arguments: argparse.Namespace) -> int:
+    references = client.import_references(arguments.file, replace=arguments.replace)
+    if arguments.json:
+        print(json.dumps({"references": [r.raw for r in references]}))
+    else:
+        for reference in references:
+            print(f"{reference.raw.get('outcome', 'imported')}: {reference.name}")
     return OK
 
 
@@ -205,9 +307,10 @@ def describe_pose(pose: Pose) -> str:
 
 
 def describe_reference(reference: Reference) -> str:
-    text = (
-        f"registered {reference.name}: {reference.num_points} points, scale {reference.scale:.4g}"
-    )
+    done = f"registered {reference.name}"
+    if reference.raw.get("outcome") == "identical":
+        done = f"{reference.name} was already registered, identical"
+    text = f"{done}: {reference.num_points} points, scale {reference.scale:.4g}"
     checks = reference.self_check or []
     if checks:
         right = sum(bool(check.get("label_ok")) for check in checks)
@@ -216,6 +319,10 @@ def describe_reference(reference: Reference) -> str:
     if reference.symmetry:
         text += f"\n  symmetry: {reference.symmetry.get('kind')}"
     return "\n".join([text, *(f"  warning: {warning}" for warning in reference.warnings)])
+
+
+def say_retry(error: ServiceError, wait_s: float) -> None:
+    print(f"dpc-mn: {error}; sending it again in {wait_s:.1f} s", file=sys.stderr)
 
 
 def report_error(error: ServiceError, as_json: bool) -> int:

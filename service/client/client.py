@@ -4,12 +4,16 @@ Points go as raw little-endian float32 (12 bytes a point), so the service aligns
 float32 values of the array given; a file goes as the multipart ``file`` field and is read by
 the service (PLY, PCD, NPY, STL, OBJ, and depth images with their camera). Every error answer
 raises the ``service.client.errors`` type of its status, carrying the service's ``detail``.
+Calls that are safe to send again (all but ``health``) are retried on a connection error, a
+502 or a 503, within ``retry.total_s`` (``service.client.retry``).
 """
 
 from __future__ import annotations
 
 import io
-from collections.abc import Iterable, Sequence
+import os
+import time
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -19,8 +23,10 @@ import numpy as np
 
 from service.client.answers import Pose, Reference
 from service.client.errors import ServiceError, Unreachable, error_for
+from service.client.retry import RETRY_STATUSES, Retry
 
 RAW = "application/octet-stream"
+COPY_TYPE = RAW  # a gallery's copy (an SQLite file), sent as its bytes
 DEFAULT_URL = "http://127.0.0.1:8000"
 PointsOrPath = np.ndarray | Sequence[Sequence[float]] | str | Path
 
@@ -38,7 +44,10 @@ class DepthCamera:
 
 
 class Client:
-    """One service: ``Client(url, api_key=...)``; use it in a ``with`` block, or ``close()``."""
+    """One service: ``Client(url, api_key=...)``; use it in a ``with`` block, or ``close()``.
+
+    ``retry_for``: seconds within which a failed idempotent call is sent again (0: never);
+    ``on_retry(error, wait_s)`` is told of each retry (the CLI prints it)."""
 
     def __init__(
         self,
@@ -46,8 +55,12 @@ class Client:
         api_key: str | None = None,
         timeout: float = 60.0,
         transport: httpx.BaseTransport | None = None,
+        retry_for: float = Retry.total_s,
+        on_retry: Callable[[ServiceError, float], None] | None = None,
     ):
         headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
+        self.retry = Retry(total_s=retry_for)
+        self.on_retry = on_retry
         self.url = url.rstrip("/")
         self._http = httpx.Client(
             base_url=self.url, headers=headers, timeout=timeout, transport=transport
@@ -125,6 +138,65 @@ class Client:
         )
         return Reference.from_answer(answer.json())
 
+    def register_many(
+        self,
+        parts: Iterable[str | Path] | dict[str, PointsOrPath],
+        *,
+        replace: bool = False,
+        self_check: bool = True,
+    ) -> list[Reference]:
+        """Register several parts in one request, all or none, with one refit of the
+        classifier: mesh or cloud files (each named for its file, without the suffix), or
+        ``{name: file or points}``. The answers come in the order given."""
+        named = parts if isinstance(parts, dict) else {Path(p).stem: p for p in parts}
+        files, names = [], []
+        for name, source in named.items():
+            if isinstance(source, str | Path):
+                files.append(("file", (Path(source).name, Path(source).read_bytes())))
+            else:
+                files.append(("file", (f"{name}.npy", npy_bytes(source))))
+            names.append(name)
+        answer = self._request(
+            "POST",
+            "/references/batch",
+            data={"name": names},
+            files=files,
+            params={"replace": _flag(replace), "self_check": _flag(self_check)},
+        )
+        return [Reference.from_answer(item) for item in answer.json()["references"]]
+
+    def backup(self, path: str | Path) -> int:
+        """A consistent copy of the whole gallery, taken while it serves, into the file
+        ``path`` (written beside it, then renamed); how many references it holds."""
+        return self._download("/gallery/backup", {}, Path(path))
+
+    def export(self, path: str | Path, names: Iterable[str]) -> int:
+        """A copy of the references ``names`` into ``path``, for ``import_references`` into
+        another service; how many it holds."""
+        return self._download("/gallery/export", {"name": list(names)}, Path(path))
+
+    def restore(self, path: str | Path, *, replace: bool = False) -> dict[str, Any]:
+        """Put a backup into a gallery that holds no reference (``replace``: in place of all
+        it holds); every row and ``points_sha256`` is checked before anything is stored."""
+        return self._request(
+            "POST",
+            "/gallery/restore",
+            content=Path(path).read_bytes(),
+            params={"replace": _flag(replace)},
+            headers={"Content-Type": COPY_TYPE},
+        ).json()
+
+    def import_references(self, path: str | Path, *, replace: bool = False) -> list[Reference]:
+        """Add the references of another service's export (``export``), all or none."""
+        answer = self._request(
+            "POST",
+            "/gallery/import",
+            content=Path(path).read_bytes(),
+            params={"replace": _flag(replace)},
+            headers={"Content-Type": COPY_TYPE},
+        )
+        return [Reference.from_answer(item) for item in answer.json()["references"]]
+
     def references(self) -> list[Reference]:
         answer = self._request("GET", "/references").json()
         return [Reference.from_answer(item) for item in answer["references"]]
@@ -137,7 +209,9 @@ class Client:
         return points_from_bytes(self._request("GET", f"/references/{name}/points").content)
 
     def delete(self, name: str) -> None:
-        self._request("DELETE", f"/references/{name}")
+        """Remove a reference; a retry answered 404 after an attempt that may have reached the
+        service (a 502, a dropped connection) counts as removed."""
+        self._request("DELETE", f"/references/{name}", gone_is_done=True)
 
     def health(self) -> dict[str, Any]:
         """``/health``: status, model, execution providers, references (a 503 while loading
@@ -171,15 +245,62 @@ class Client:
         fields = {k: v for k, v in asdict(camera).items() if v is not None} if camera else {}
         return self._request("POST", route, data=fields | options, files=files)
 
-    def _request(self, method: str, route: str, **kwargs: Any) -> httpx.Response:
-        answer = self._send(method, route, **kwargs)
-        if answer.is_error:
-            raise _error(answer)
-        return answer
-
-    def _send(self, method: str, route: str, **kwargs: Any) -> httpx.Response:
+    def _download(self, route: str, params: dict[str, Any], path: Path) -> int:
+        """A copy streamed into ``path`` (beside it first, renamed once whole)."""
+        partial = path.with_name(path.name + ".partial")
         try:
-            return self._http.request(method, route, **kwargs)
+            answer = self._request("GET", route, params=params, into=partial)
+            os.replace(partial, path)
+        finally:
+            partial.unlink(missing_ok=True)
+        return int(answer.headers.get("X-References", "0"))
+
+    def _request(
+        self, method: str, route: str, gone_is_done: bool = False, **kwargs: Any
+    ) -> httpx.Response:
+        """The answer of a call sent again while it fails for a reason worth a retry."""
+        waits = self.retry.waits()
+        reached = False  # whether an attempt so far may have reached the service
+        while True:
+            try:
+                answer = self._send(method, route, **kwargs)
+            except Unreachable as error:
+                problem = error
+                reached |= not isinstance(error.__cause__, httpx.ConnectError)
+            else:
+                if gone_is_done and reached and answer.status_code == 404:
+                    return answer
+                if not answer.is_error:
+                    return answer
+                problem = _error(answer)
+                if answer.status_code not in RETRY_STATUSES:
+                    raise problem
+                reached = True
+            wait = waits.next(problem.retry_after)
+            if wait is None:
+                if waits.attempts > 1:
+                    problem.attempts = waits.attempts
+                    problem.detail += f" (after {waits.attempts} attempts)"
+                raise problem
+            if self.on_retry is not None:
+                self.on_retry(problem, wait)
+            time.sleep(wait)
+
+    def _send(
+        self, method: str, route: str, into: Path | None = None, **kwargs: Any
+    ) -> httpx.Response:
+        """One attempt; ``into``: a successful answer's body is streamed into that file."""
+        try:
+            if into is None:
+                return self._http.request(method, route, **kwargs)
+            with self._http.stream(method, route, **kwargs) as answer:
+                if answer.is_error:
+                    answer.read()
+                    return answer
+                with open(into, "wb") as file:
+                    for chunk in answer.iter_bytes(1 << 20):
+                        file.write(chunk)
+                return answer
         except httpx.TransportError as error:
             raise Unreachable(f"cannot reach the service at {self.url}: {error}") from error
 

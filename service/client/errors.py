@@ -23,6 +23,7 @@ class ServiceError(Exception):
         self.status = status
         self.request_id = request_id
         self.retry_after = retry_after
+        self.attempts = 1  # how many times the call was sent (more when retried)
 
     def __str__(self) -> str:
         return self.detail if self.status is None else f"{self.status}: {self.detail}"
@@ -65,11 +66,17 @@ class InvalidInput(ServiceError):
 
 
 class Unavailable(ServiceError):
-    """503: still loading, or busy; retry after ``retry_after`` seconds."""
+    """503: still loading, busy, or the gallery's database is out of reach (nothing was
+    changed); retry after ``retry_after`` seconds. 502 from a proxy in front (a replica died
+    mid-request: a write's outcome is unknown) is raised as this too."""
 
 
 class TimedOut(ServiceError):
     """504: the work ran past the service's time budget."""
+
+
+class StorageFull(ServiceError):
+    """507: the gallery's disk is full; nothing was stored (alignments are still served)."""
 
 
 class ServerError(ServiceError):
@@ -85,8 +92,10 @@ BY_STATUS: dict[int, type[ServiceError]] = {
     413: TooLarge,
     415: UnsupportedMediaType,
     422: InvalidInput,
+    502: Unavailable,
     503: Unavailable,
     504: TimedOut,
+    507: StorageFull,
 }
 
 

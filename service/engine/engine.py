@@ -22,6 +22,7 @@ docs/decisions.md, "Glossary".
 from __future__ import annotations
 
 import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import trimesh
@@ -80,6 +81,8 @@ from service.engine.visibility import random_camera, visible_points
 from service.errors import EmptyGallery, UnknownReference
 from service.settings import EngineSettings
 
+SELF_CHECK_THREADS = 2  # renders of the registration check aligned at once
+
 
 class Engine:
     def __init__(
@@ -95,6 +98,7 @@ class Engine:
         self.scene_calibration = scene_calibration  # a detection's confidence, if fitted
         self._snapshot = Snapshot({}, None)
         self._write_lock = threading.Lock()
+        self.refits = 0  # how many times the classifier was refitted (one a change, or a batch)
 
     # --- a reference ------------------------------------------------------------------
 
@@ -108,13 +112,22 @@ class Engine:
     ) -> Reference:
         """Compute what the engine needs of a new object from its points (sampled on ``mesh``'s
         faces ``face_index``, when it came as a mesh): mapped points, view grids, scale, then
-        normals, rendered views, distance field and symmetry."""
+        normals, rendered views, distance field and symmetry.
+
+        The network's share (the points, the augmented views, then the rendered views) runs in
+        a thread of its own beside the geometry (onnxruntime lets go of the GIL while it runs);
+        each view's randomness is drawn first, in the order one thread drew it, so the
+        reference is the same bit for bit (docs/operations.md, "Registration time")."""
         points = np.asarray(points, dtype=np.float32)
-        mapped = self.map(points)
         rng = np.random.default_rng(self.settings.seed if seed is None else seed)
-        views = [self.view_grid(points, rng) for _ in range(self.settings.view_grids)]
-        reference = Reference(name, points, mapped, np.stack(views), radius(points))
-        return self.complete(reference, mesh, face_index)
+        augmented = [self.augmented_view(points, rng) for _ in range(self.settings.view_grids)]
+        scale = radius(points)
+        with ThreadPoolExecutor(1, thread_name_prefix="network") as network:
+            mapped = network.submit(self.map, points, True)
+            grids = network.submit(self._grids, augmented)
+            derived = self._derive(points, scale, mesh, face_index, network)
+            reference = Reference(name, points, mapped.result(), grids.result(), scale)
+        return reference.with_(**derived)
 
     def complete(
         self,
@@ -124,10 +137,24 @@ class Engine:
     ) -> Reference:
         """The reference with every derived field computed (those it lacks, or all of them
         when a mesh is given): normals, views, distance field, symmetry."""
-        settings = self.settings
         if mesh is None and not reference.missing:
             return reference
-        points = np.asarray(reference.points, dtype=np.float64)
+        with ThreadPoolExecutor(1, thread_name_prefix="network") as network:
+            derived = self._derive(reference.points, reference.scale, mesh, face_index, network)
+        return reference.with_(**derived)
+
+    def _derive(
+        self,
+        points: np.ndarray,
+        scale: float,
+        mesh: trimesh.Trimesh | None,
+        face_index: np.ndarray | None,
+        network: ThreadPoolExecutor,
+    ) -> dict:
+        """The derived fields of a reference of these points and scale; the rendered views'
+        grids are mapped on ``network`` while this thread finds the symmetry."""
+        settings = self.settings
+        points = np.asarray(points, dtype=np.float64)
         tree = cKDTree(points)
         if mesh is not None:  # the views see the mesh's own surface; normals are its faces'
             surface = np.asarray(
@@ -135,28 +162,33 @@ class Engine:
                     mesh, settings.mesh_surface_points, seed=settings.seed + 1
                 )[0]
             )
-            visible = render(points, reference.scale, settings.views, surface, mesh.area)
+            visible = render(points, scale, settings.views, surface, mesh.area)
             normals = mesh_normals(mesh, face_index, points, directions(settings.views), visible)
         else:
-            visible = render(points, reference.scale, settings.views, tree=tree)
+            visible = render(points, scale, settings.views, tree=tree)
             normals = estimate_normals(points, tree=tree)
             normals = orient_by_views(points, normals, directions(settings.views), visible)
         if mesh is None:  # a cloud's own buffer lets through what its camera hardly samples;
             # a view left facing nothing (a few points, normals at odds) keeps what it showed
-            faced = visible & facing(points, normals, reference.scale, settings.views)
+            faced = visible & facing(points, normals, scale, settings.views)
             visible = np.where(faced.any(axis=1, keepdims=True), faced, visible)
-        distance_field = DistanceField.of(points, reference.scale, tree=tree)
+        seen = [points[shown][:VIEW_POINTS] for shown in visible]
+        grids = network.submit(self._grids, seen)
+        distance_field = DistanceField.of(points, scale, tree=tree)
         surface_model = Surface.of(points, normals, distance_field, tree)
-        grids = np.stack([grid(self.map(points[seen][:VIEW_POINTS])) for seen in visible])
-        symmetry = find_symmetry(surface_model, reference.scale, np.random.default_rng(0))
-        return reference.with_(
-            normals=normals.astype(np.float32),
-            visibility=np.packbits(visible, axis=1),
-            view_features=view_features(grids, settings.grid_blur).astype(np.float16),
-            field=distance_field.nearest,
-            field_frame=np.array([*distance_field.origin, distance_field.voxel]),
-            symmetry=symmetry.describe(),
-        )
+        symmetry = find_symmetry(surface_model, scale, np.random.default_rng(0))
+        return {
+            "normals": normals.astype(np.float32),
+            "visibility": np.packbits(visible, axis=1),
+            "view_features": view_features(grids.result(), settings.grid_blur).astype(np.float16),
+            "field": distance_field.nearest,
+            "field_frame": np.array([*distance_field.origin, distance_field.voxel]),
+            "symmetry": symmetry.describe(),
+        }
+
+    def _grids(self, clouds: list[np.ndarray]) -> np.ndarray:
+        """(V, 64, 64) the grids of these clouds' mapped points (on the quiet session)."""
+        return np.stack([grid(self.map(cloud, quiet=True)) for cloud in clouds])
 
     def refind_symmetry(self, reference: Reference) -> Reference:
         """The reference with its symmetry found again by this version's rule, from its stored
@@ -166,14 +198,17 @@ class Engine:
         return reference.with_(symmetry=symmetry.describe())
 
     def view_grid(self, points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """The grid of an augmented view: a random pose, a single camera's view with
+        """The grid of an augmented view (``augmented_view``)."""
+        return grid(self.map(self.augmented_view(points, rng)))
+
+    def augmented_view(self, points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """An augmented view of the points: a random pose, a single camera's view with
         probability ``partial_views``, and 10-100 % of the remaining points kept."""
         if rng.random() < self.settings.partial_views:
             points = points[visible_points(points, random_camera(points, 3.0, rng))]
         count = min(len(points), self.settings.network_points)
         keep = max(16, int(count * rng.uniform(0.1, 1.0)))
-        view = points[subsample(points, keep, rng)] @ Rotation.random(random_state=rng).as_matrix()
-        return grid(self.map(view))
+        return points[subsample(points, keep, rng)] @ Rotation.random(random_state=rng).as_matrix()
 
     # --- the gallery ------------------------------------------------------------------
 
@@ -185,14 +220,22 @@ class Engine:
 
     def add(self, reference: Reference) -> None:
         """Add a reference, or replace the one of its name."""
-        entry = Entry.of(reference, self.settings.grid_blur)
-        share = view_gram([entry.view_features])  # its views' part of the Gram, off the lock
+        self.add_many([reference])
+
+    def add_many(self, references: list[Reference]) -> None:
+        """Add references (or replace those of their names) with one refit of the classifier."""
+        if not references:
+            return
+        entries_added = {r.name: Entry.of(r, self.settings.grid_blur) for r in references}
+        # their views' part of the Gram, off the lock
+        share = view_gram([entry.view_features for entry in entries_added.values()])
         with self._write_lock:
             entries, gram = self._snapshot.entries, self._snapshot.gram
             gram = share if gram is None else gram + share
-            if (previous := entries.get(reference.name)) is not None:
-                gram -= view_gram([previous.view_features])
-            self._publish({**entries, reference.name: entry}, gram)
+            replaced = [entries[name] for name in entries_added if name in entries]
+            if replaced:
+                gram -= view_gram([previous.view_features for previous in replaced])
+            self._publish({**entries, **entries_added}, gram)
 
     def remove(self, name: str) -> None:
         with self._write_lock:
@@ -209,6 +252,7 @@ class Engine:
         ``gram`` is kept by sums across changes (one reference's share added or taken away),
         so a refit costs the same whatever the gallery's size."""
         classifier = None
+        self.refits += 1
         if entries:
             classifier = LinearClassifier.fit(
                 list(entries),
@@ -263,9 +307,9 @@ class Engine:
 
     # --- the chain --------------------------------------------------------------------
 
-    def map(self, points: np.ndarray) -> np.ndarray:
-        """Normalise a cloud as training did and map it to 2-D."""
-        return self.mapper.map(normalize(points, self.mapper.canonical).points)
+    def map(self, points: np.ndarray, quiet: bool = False) -> np.ndarray:
+        """Normalise a cloud as training did and map it to 2-D (``quiet``: ``Mapper.map``'s)."""
+        return self.mapper.map(normalize(points, self.mapper.canonical).points, quiet)
 
     def align(
         self,
@@ -715,7 +759,9 @@ class Engine:
         removal), and the camera's place is its viewpoint. Each check says what was answered
         and how far its rotation is from the truth, the part's symmetry accounted for."""
         rng = np.random.default_rng(self.settings.seed + 1)
-        entry = Entry.of(reference, self.settings.grid_blur)
+        entry = self._snapshot.entries.get(reference.name)
+        if entry is None or entry.reference is not reference:  # not the one the gallery holds
+            entry = Entry.of(reference, self.settings.grid_blur)
         points = np.asarray(reference.points, dtype=np.float64)
         if mesh is not None:
             sample = np.asarray(trimesh.sample.sample_surface(mesh, len(points), seed=7)[0])
@@ -737,22 +783,27 @@ class Engine:
             else:
                 seen = splat_visible(sample, surface, camera, sample_spacing(surface, mesh.area))
             renders.append(("view", sample[seen], camera))
-        checks = []
-        for kind, cloud, camera in renders:
-            rotation = Rotation.random(random_state=rng).as_matrix()
-            translation = rng.uniform(-1, 1, 3) * reference.scale
+        # every pose drawn first, in the order one thread drew them; the renders are then
+        # aligned two at a time (their numpy, cKDTree and onnxruntime steps let go of the GIL)
+        poses = [
+            (Rotation.random(random_state=rng).as_matrix(), rng.uniform(-1, 1, 3) * reference.scale)
+            for _ in renders
+        ]
+
+        def check(render: tuple[str, np.ndarray, np.ndarray | None], pose) -> dict:
+            (kind, cloud, camera), (rotation, translation) = render, pose
             scene = cloud @ rotation.T + translation
             viewpoint = None if camera is None else rotation @ camera + translation
             result = self.align(scene, viewpoint=viewpoint)
-            checks.append(
-                {
-                    "render": kind,
-                    "label": result.label,
-                    "label_ok": result.label == reference.name,
-                    "rotation_error_deg": entry.symmetry.distance_deg(result.rotation, rotation),
-                    "alignment_error_normalized": result.alignment_error_normalized,
-                    "verdict": result.verdict,
-                    "confidence": result.confidence,
-                }
-            )
-        return checks
+            return {
+                "render": kind,
+                "label": result.label,
+                "label_ok": result.label == reference.name,
+                "rotation_error_deg": entry.symmetry.distance_deg(result.rotation, rotation),
+                "alignment_error_normalized": result.alignment_error_normalized,
+                "verdict": result.verdict,
+                "confidence": result.confidence,
+            }
+
+        with ThreadPoolExecutor(SELF_CHECK_THREADS, thread_name_prefix="self-check") as pool:
+            return list(pool.map(check, renders, poses))

@@ -61,6 +61,13 @@ class Mapper:
             providers.insert(0, "CUDAExecutionProvider")
         self.path = Path(path)
         self.session = ort.InferenceSession(str(path), options, providers=providers)
+        # a registration's many small clouds: one thread that does not spin while it waits,
+        # beside the geometry's thread (the same bits as two threads on clouds of 16 to 4,096
+        # points: docs/operations.md, "Registration time")
+        quiet = ort.SessionOptions()
+        quiet.intra_op_num_threads = quiet.inter_op_num_threads = 1
+        quiet.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        self._quiet = ort.InferenceSession(str(path), quiet, providers=providers)
         self.providers: list[str] = self.session.get_providers()
         self.model_hash = model_hash or file_sha256(self.path)
         metadata = self.session.get_modelmeta().custom_metadata_map
@@ -78,7 +85,9 @@ class Mapper:
             model.blas_threads,
         )
 
-    def map(self, normalized: np.ndarray) -> np.ndarray:
-        """Mapped coordinates (N, 2) of normalised points (N, 3)."""
+    def map(self, normalized: np.ndarray, quiet: bool = False) -> np.ndarray:
+        """Mapped coordinates (N, 2) of normalised points (N, 3); ``quiet``: on the
+        single-threaded session, for work that runs beside other work (a registration's)."""
         batch = np.ascontiguousarray(normalized, dtype=np.float32)[None]
-        return self.session.run([OUTPUT_NAME], {INPUT_NAME: batch})[0][0]
+        session = self._quiet if quiet else self.session
+        return session.run([OUTPUT_NAME], {INPUT_NAME: batch})[0][0]

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,19 +22,35 @@ import trimesh
 
 from service import memory
 from service.engine.engine import Engine
-from service.engine.reference import Reference
+from service.engine.reference import Reference, points_sha256
 from service.engine.symmetry import Symmetry
 from service.errors import ReferenceExists
+from service.gallery import backup
+from service.gallery.backup import Copy
 from service.gallery.gallery_file import load_gallery
 from service.gallery.store import SEEDED_KEY, GalleryStore, StoredReference
 
-__all__ = ["SEEDED_KEY", "Catalog", "GalleryFull"]
+__all__ = ["CREATED", "IDENTICAL", "REPLACED", "SEEDED_KEY", "Catalog", "GalleryFull", "Part"]
+
+CREATED, REPLACED, IDENTICAL = "created", "replaced", "identical"  # a registration's outcome
 
 log = logging.getLogger(__name__)
 
 
 class GalleryFull(RuntimeError):
     """The gallery holds ``max_references`` references (409)."""
+
+
+@dataclass(frozen=True)
+class Part:
+    """One part to register: its points, sampled on ``mesh``'s faces ``face_index`` when it
+    came as a mesh."""
+
+    name: str
+    points: np.ndarray
+    mesh: trimesh.Trimesh | None = None
+    face_index: np.ndarray | None = None
+    reference: Reference | None = None  # computed already (an imported one)
 
 
 class Catalog:
@@ -123,30 +140,147 @@ class Catalog:
         commit: Callable[[], None] = lambda: None,
         mesh: trimesh.Trimesh | None = None,
         face_index: np.ndarray | None = None,
-    ) -> tuple[Reference, bool, list[dict] | None]:
-        """Compute, store and add a reference; returns it, whether it was new, its self-check.
+    ) -> tuple[Reference, str, list[dict] | None]:
+        """Compute, store and add a reference; returns it, the outcome (``CREATED``,
+        ``REPLACED`` or ``IDENTICAL``) and its self-check.
 
-        ``points`` were sampled on ``mesh``'s faces ``face_index`` when it came as a mesh.
-        ``commit`` is called just before the durable write and may raise to stop it.
+        The same name with the same points (``points_sha256``) and no ``replace`` is
+        ``IDENTICAL``: nothing is computed or stored, so a client may send a registration again
+        when it cannot tell whether the first one was committed (a proxy's 502, a dropped
+        connection). ``points`` were sampled on ``mesh``'s faces ``face_index`` when it came as
+        a mesh. ``commit`` is called just before the durable write and may raise to stop it.
         """
-        self._check_can_add(name, replace)  # fail fast, before the slow part
-        reference = self.engine.make_reference(name, points, mesh=mesh, face_index=face_index)
+        part = Part(name, points, mesh, face_index)
+        return self.register_many([part], replace, self_check_poses, commit)[0]
+
+    def register_many(
+        self,
+        parts: list[Part],
+        replace: bool = False,
+        self_check_poses: int = 0,
+        commit: Callable[[], None] = lambda: None,
+    ) -> list[tuple[Reference, str, list[dict] | None]]:
+        """``register`` for several parts (of distinct names), all or none: one store
+        transaction and one refit of the classifier; then each part's self-check against the
+        whole gallery, the batch included."""
+        digests = {p.name: points_sha256(np.asarray(p.points, dtype=np.float32)) for p in parts}
+        same = self._identical(digests, replace)  # fail fast, before the slow part
+        made = {p.name: self._make(p) for p in parts if p.name not in same}
         with self._write_lock:
-            existed = self._check_can_add(name, replace)
-            previous = self.engine.get(name)
-            commit()
-            checksum = self.store.put(reference, self.model_hash, replace=replace)
-            try:
-                self.engine.add(reference)
-            except BaseException:  # the store must not keep what the engine refused
-                self._restore(name, previous)
-                raise
-            self._held[name] = checksum
-        checks = (
-            self.engine.self_check(reference, self_check_poses, mesh) if self_check_poses else None
-        )
+            same = self._identical(digests, replace)
+            fresh = [made[p.name] for p in parts if p.name not in same]
+            previous = {r.name: self.engine.get(r.name) for r in fresh}
+            if fresh:
+                commit()
+                checksums = self._put(fresh, digests, replace, same)
+                fresh = [r for r in fresh if r.name not in same]
+                try:
+                    self.engine.add_many(fresh)
+                except BaseException:  # the store must not keep what the engine refused
+                    for reference in fresh:
+                        self._restore(reference.name, previous[reference.name])
+                    raise
+                self._held.update(checksums)
+        results = []
+        for part in parts:
+            if part.name in same:
+                results.append((same[part.name], IDENTICAL, None))
+                continue
+            reference = made[part.name]
+            checks = None
+            if self_check_poses:
+                checks = self.engine.self_check(reference, self_check_poses, part.mesh)
+            outcome = CREATED if previous[part.name] is None else REPLACED
+            results.append((reference, outcome, checks))
         memory.release_free_heap()
-        return reference, not existed, checks
+        return results
+
+    def _make(self, part: Part) -> Reference:
+        if part.reference is not None:
+            return part.reference
+        return self.engine.make_reference(
+            part.name, part.points, mesh=part.mesh, face_index=part.face_index
+        )
+
+    def restore(
+        self,
+        copy: Copy,
+        source: str,
+        replace_all: bool = False,
+        commit: Callable[[], None] = lambda: None,
+    ) -> str:
+        """Put a gallery copy in the store, every row as it was, into an empty store or in
+        place of everything (``replace_all``); every row is checked as read back before the
+        write commits, then the engine holds the copy's references (recomputed where they were
+        computed with another model). ``IDENTICAL`` when the store holds exactly the copy
+        already (a restore sent again), else ``CREATED``."""
+        with self._write_lock:
+            if self.store.checksums() == copy.checksums:
+                return IDENTICAL
+            commit()
+            self.store.restore(
+                copy.rows, source, replace_all, lambda rows: backup.check(rows, copy.entries)
+            )
+            references, held = [], {}
+            for record in self.store.load_records():
+                reference, held[record.name] = self._usable(record, write_back=True)
+                references.append(reference)
+            self.engine.load(references)
+            self._held = held
+        memory.release_free_heap()
+        log.info("restored %d references from %s", len(copy.rows), source)
+        return CREATED
+
+    def import_references(
+        self,
+        copy: Copy,
+        replace: bool = False,
+        commit: Callable[[], None] = lambda: None,
+    ) -> list[tuple[Reference, str, list[dict] | None]]:
+        """Add the references of another service's export, all or none, as ``register_many``
+        (the same name and points again: ``IDENTICAL``); a reference computed with this model
+        is taken as it is, one computed with another is recomputed from its points."""
+        parts = []
+        for record in copy.records():
+            reference = self._usable(record, write_back=False)[0]
+            parts.append(Part(record.name, reference.points, reference=reference))
+        return self.register_many(parts, replace, 0, commit)
+
+    def _put(
+        self,
+        references: list[Reference],
+        digests: dict[str, str],
+        replace: bool,
+        same: dict[str, Reference],
+    ) -> dict[str, str]:
+        """Store the references in one transaction; their rows' checksums. A name another
+        replica has stored meanwhile (not followed here yet) with the same points joins
+        ``same``, and the rest is stored; other points under it are ``ReferenceExists``."""
+        try:
+            return self.store.put_many(references, self.model_hash, replace=replace)
+        except ReferenceExists:
+            if replace:
+                raise
+            stored = self.store.load_records([r.name for r in references])
+            for record in stored:
+                if points_sha256(record.points) != digests[record.name]:
+                    raise
+            for record in stored:
+                same[record.name] = self._usable(record, write_back=False)[0]
+            rest = [r for r in references if r.name not in same]
+            return self.store.put_many(rest, self.model_hash) if rest else {}
+
+    def _identical(self, digests: dict[str, str], replace: bool) -> dict[str, Reference]:
+        """The references held under these names with these points (none with ``replace``);
+        raises if one of the others may not be (re)registered, or they would not fit."""
+        same = {}
+        if not replace:
+            for name, digest in digests.items():
+                existing = self.engine.get(name)
+                if existing is not None and existing.points_sha256 == digest:
+                    same[name] = existing
+        self._check_can_add([name for name in digests if name not in same], replace)
+        return same
 
     def remove(self, name: str, commit: Callable[[], None] = lambda: None) -> None:
         """Delete a reference from the store and the engine; ``commit`` as for ``register``.
@@ -172,16 +306,19 @@ class Catalog:
         else:
             self._held[name] = self.store.put(previous, self.model_hash, replace=True)
 
-    def _check_can_add(self, name: str, replace: bool) -> bool:
-        """Whether ``name`` exists; raises if it may not be added."""
-        existed = self.engine.get(name) is not None
-        if existed and not replace:
-            raise ReferenceExists(
-                f"a reference named '{name}' exists: pick another name or pass replace=true"
-            )
-        if not existed and len(self.engine) >= self.max_references:
+    def _check_can_add(self, names: list[str], replace: bool) -> None:
+        """Raises if one of ``names`` exists and not ``replace``, or the new ones would not fit."""
+        for name in names:
+            if self.engine.get(name) is not None and not replace:
+                raise ReferenceExists(
+                    f"a reference named '{name}' exists with other points: pick another name "
+                    "or pass replace=true (the same points again are answered 200, identical)"
+                )
+        new = sum(self.engine.get(name) is None for name in names)
+        if new and len(self.engine) + new > self.max_references:
+            room = max(0, self.max_references - len(self.engine))
             raise GalleryFull(
-                f"the gallery holds its maximum of {self.max_references} references: "
-                "delete one first"
+                f"the gallery holds {len(self.engine)} references, its maximum is "
+                f"{self.max_references}: {'it' if new == 1 else f'{new} new ones'} would not fit "
+                f"(room for {room}); delete some first"
             )
-        return existed

@@ -19,7 +19,7 @@ from urllib.parse import urlsplit
 import psycopg
 from psycopg_pool import ConnectionPool, PoolTimeout
 
-from service.errors import StoreUnavailable
+from service.errors import StoreFull, StoreUnavailable
 from service.gallery.store import GalleryStore
 
 log = logging.getLogger(__name__)
@@ -55,11 +55,19 @@ class PostgresStore(GalleryStore):
         try:
             with self._pool.connection() as conn:
                 yield conn
+        except psycopg.errors.DiskFull as error:  # SQLSTATE 53100: the transaction rolled back
+            raise StoreFull(
+                f"the database {self.where} has no room left ({_first_line(error)}): nothing was "
+                "stored; free space on the database server, then send it again"
+            ) from error
         except (psycopg.OperationalError, PoolTimeout) as error:
             raise StoreUnavailable(f"cannot reach {self.where}: {_first_line(error)}") from error
 
     def _execute(self, conn: psycopg.Connection, sql: str, params: tuple = ()) -> psycopg.Cursor:
         return conn.execute(sql.replace("?", "%s"), params)  # type: ignore[arg-type]
+
+    def _begin_snapshot(self, conn: psycopg.Connection) -> None:
+        conn.execute("SET TRANSACTION ISOLATION LEVEL REPEATABLE READ, READ ONLY")
 
     def _has_table(self, conn: psycopg.Connection, table: str) -> bool:
         return self._execute(conn, "SELECT to_regclass(?) IS NOT NULL", (table,)).fetchone()[0]

@@ -11,15 +11,16 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import sqlite3
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from service.errors import StoreUnavailable
+from service.errors import StoreFull, StoreUnavailable
 from service.gallery import encoding
 from service.gallery.encoding import StoreCorrupted
 from service.gallery.store import (
@@ -45,8 +46,33 @@ class SQLiteStore(GalleryStore):
             self.check()  # before writing anything else to it
             with self._connect() as conn:
                 conn.execute("PRAGMA journal_mode=WAL")
+            # Held open while the store is: the last connection to close removes the WAL and
+            # its index (-shm), and the next must make them again, which a full disk refuses
+            # (even to a read: "disk I/O error", so the replica turned not ready).
+            self._keeper = sqlite3.connect(self.path, check_same_thread=False)
+            self._keeper.execute("SELECT COUNT(*) FROM meta").fetchone()
         except sqlite3.DatabaseError as error:  # not a database, or a damaged one
+            if self._disk_full():
+                raise StoreFull(self._full_message(error)) from error
             raise StoreIncompatible(f"{self.path} is not a usable SQLite file: {error}") from error
+
+    def close(self) -> None:
+        self._keeper.close()
+
+    def _disk_full(self) -> bool:
+        """Whether the data directory's filesystem has no block left (root's reserve counts:
+        root may write into it)."""
+        try:
+            space = os.statvfs(self.path.parent)
+        except OSError:
+            return False
+        return (space.f_bfree if os.geteuid() == 0 else space.f_bavail) == 0
+
+    def _full_message(self, error: Exception) -> str:
+        return (
+            f"the disk of the gallery file {self.path} is full ({error}): nothing was stored; "
+            "free space there (or move DPC_GALLERY__DATA_DIR), then send it again"
+        )
 
     @classmethod
     def in_dir(cls, data_dir: str | Path) -> SQLiteStore:
@@ -64,7 +90,8 @@ class SQLiteStore(GalleryStore):
     @contextmanager
     def _transaction(self, write: bool) -> Iterator[sqlite3.Connection]:
         """A write takes the file's write lock at once (``BEGIN IMMEDIATE``); a read needs no
-        transaction. A locked or unreadable file is ``StoreUnavailable``."""
+        transaction. A full disk is ``StoreFull`` (SQLite has rolled the write back itself); a
+        locked or unreadable file is ``StoreUnavailable``."""
         try:
             with self._connect() as conn:
                 if not write:
@@ -73,14 +100,32 @@ class SQLiteStore(GalleryStore):
                 conn.execute("BEGIN IMMEDIATE")
                 try:
                     yield conn
+                    conn.execute("COMMIT")
                 except BaseException:
-                    conn.execute("ROLLBACK")
+                    if conn.in_transaction:  # SQLITE_FULL ends the transaction itself
+                        conn.execute("ROLLBACK")
                     raise
-                conn.execute("COMMIT")
         except sqlite3.OperationalError as error:
+            # SQLITE_FULL, or an I/O error where the disk has no block left (the WAL's index
+            # could not grow)
+            if error.sqlite_errorcode == sqlite3.SQLITE_FULL or self._disk_full():
+                raise StoreFull(self._full_message(error)) from error
             raise StoreUnavailable(
                 f"the gallery file {self.path} cannot be used: {error}"
             ) from error
+
+    def _begin_snapshot(self, conn: sqlite3.Connection) -> None:
+        conn.execute("BEGIN")  # WAL: the first read fixes what every later one sees
+
+    def copy_to(self, path: Path) -> None:
+        """The whole database into the new file ``path`` with SQLite's online backup API: one
+        consistent snapshot, taken while other connections go on writing."""
+        try:
+            with closing(sqlite3.connect(self.path)) as source:
+                with closing(sqlite3.connect(path)) as target:
+                    source.backup(target)
+        except sqlite3.OperationalError as error:
+            raise StoreUnavailable(f"cannot copy the gallery file {self.path}: {error}") from error
 
     def _has_table(self, conn: sqlite3.Connection, table: str) -> bool:
         query = "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = ?"

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import threading
 from abc import ABC, abstractmethod
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -37,11 +37,16 @@ from service.gallery import encoding
 from service.gallery.encoding import Row, StoreCorrupted
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
-
     from service.settings import GallerySettings
 
-__all__ = ["GalleryStore", "StoreCorrupted", "StoreIncompatible", "StoredReference", "open_store"]
+__all__ = [
+    "GalleryStore",
+    "StoreCorrupted",
+    "StoreIncompatible",
+    "StoreNotEmpty",
+    "StoredReference",
+    "open_store",
+]
 
 SCHEMA_VERSION = "2"
 SEEDED_KEY = "seeded_from"  # meta: the gallery file the store was seeded from, once
@@ -83,6 +88,10 @@ class StoreIncompatible(RuntimeError):
     """A database this code cannot use: written by a newer version, or not a gallery at all."""
 
 
+class StoreNotEmpty(RuntimeError):
+    """A restore into a store that holds references (409)."""
+
+
 @dataclass(frozen=True)
 class StoredReference:
     values: dict[str, Any]  # every stored field, the name included
@@ -120,7 +129,12 @@ def open_store(settings: GallerySettings) -> GalleryStore:
     if settings.url:
         from service.gallery.postgres_store import PostgresStore
 
-        return PostgresStore(settings.url, pool_size=settings.pool_size, listen=settings.listen)
+        return PostgresStore(
+            settings.url,
+            pool_size=settings.pool_size,
+            listen=settings.listen,
+            timeout_s=settings.connect_timeout_s,
+        )
     from service.gallery.sqlite_store import SQLiteStore
 
     return SQLiteStore.in_dir(settings.data_dir)
@@ -150,6 +164,9 @@ class GalleryStore(ABC):
 
     def _execute(self, conn: Any, sql: str, params: tuple = ()) -> Any:
         return conn.execute(sql, params)
+
+    def _begin_snapshot(self, conn: Any) -> None:  # noqa: B027 - a hook
+        """Make the statements that follow on ``conn`` read one consistent state."""
 
     def _lock_schema(self, conn: Any) -> None:  # noqa: B027 - a hook, empty by default
         """Make replicas that start together set the schema up one after the other."""
@@ -251,6 +268,55 @@ class GalleryStore(ABC):
                 ]
         return sorted((_record(row) for row in rows), key=lambda record: record.name)
 
+    def snapshot(self, names: Iterable[str] | None = None) -> tuple[list[tuple], dict[str, str]]:
+        """Every row (or those of ``names``, ``UnknownReference`` for one not stored) with its
+        columns as stored, and the meta entries, as one consistent state: what a copy holds."""
+        select = f"SELECT {COLUMNS} FROM reference"
+        self.check()
+        with self._transaction(write=False) as conn:
+            self._begin_snapshot(conn)
+            if names is None:
+                rows = self._execute(conn, f"{select} ORDER BY name").fetchall()
+            else:
+                rows = []
+                for name in names:
+                    found = self._execute(conn, f"{select} WHERE name = ?", (name,)).fetchall()
+                    if not found:
+                        raise UnknownReference(f"no reference named '{name}'")
+                    rows += found
+            meta = dict(self._execute(conn, "SELECT key, value FROM meta").fetchall())
+        return [(*row[:1], bytes(row[1]), *row[2:]) for row in rows], meta
+
+    def restore(
+        self,
+        rows: list[tuple],
+        source: str,
+        replace_all: bool,
+        check: Callable[[list[tuple]], None],
+    ) -> None:
+        """Store a copy's ``rows`` as they are (checksum, model hash, registration time) in one
+        transaction, into an empty store (``StoreNotEmpty`` otherwise) or, with
+        ``replace_all``, in place of everything it holds; ``check`` is given the rows as read
+        back inside the transaction, before it commits, and raises to undo it all. The store
+        is marked seeded from the copy, so that no later start seeds over it."""
+        with self._writing() as conn:
+            held = self._execute(conn, "SELECT COUNT(*) FROM reference").fetchone()[0]
+            if held and not replace_all:
+                raise StoreNotEmpty(
+                    f"the gallery holds {held} references: restore only into an empty one, or "
+                    "pass replace=true to replace all of them with the copy"
+                )
+            self._execute(conn, "DELETE FROM reference")
+            for row in rows:
+                self._execute(conn, INSERT, row)
+            check(
+                [
+                    (*row[:1], bytes(row[1]), *row[2:])
+                    for row in self._execute(conn, f"SELECT {COLUMNS} FROM reference").fetchall()
+                ]
+            )
+            self._execute(conn, SET_META, (SEEDED_KEY, f"restored from {source}"))
+
     def load_all(self) -> list[Reference]:
         """Every reference, by name, each checked against its checksum."""
         return [record.reference for record in self.load_records()]
@@ -351,6 +417,7 @@ class GalleryStore(ABC):
             except self.duplicate_errors as error:
                 raise ReferenceExists(
                     f"a reference named '{row.name}' exists: pick another name or pass replace=true"
+                    " (the same points again are answered 200, identical)"
                 ) from error
 
 

@@ -113,6 +113,7 @@ def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
         422: "bad points or fields; the detail names the problem",
         503: "the model or gallery is not loaded yet, or every slot stayed busy",
         504: "the work ran past the request's time budget (`limits.request_timeout_s`)",
+        507: "the gallery's disk is full: nothing was stored; free space, then send it again",
     }
     headers = {
         401: {"WWW-Authenticate": "`Bearer`"},

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import PurePath
 from typing import Annotated
 
 import numpy as np
@@ -16,6 +17,7 @@ from service.api.routes.common import (
     MULTIPART,
     body_kind,
     errors,
+    invalid,
     json_object,
     known_fields,
     parse,
@@ -24,6 +26,7 @@ from service.api.routes.common import (
     require,
 )
 from service.api.schemas import (
+    ReferenceBatchResponse,
     ReferenceIdentity,
     ReferenceInfo,
     ReferenceList,
@@ -31,12 +34,12 @@ from service.api.schemas import (
     ReferenceResponse,
     SelfCheck,
 )
-from service.api.uploads import read_form
+from service.api.uploads import read_form, read_parts
 from service.api.validation import validate_points
 from service.engine.engine import Engine
 from service.engine.reference import Reference
-from service.errors import UnknownReference
-from service.gallery.catalog import Catalog
+from service.errors import InvalidPoints, UnknownReference
+from service.gallery.catalog import CREATED, IDENTICAL, Catalog, Part
 from service.settings import Settings
 
 router = APIRouter(prefix="/references", tags=["references"])
@@ -57,8 +60,14 @@ BODY = {
     status_code=status.HTTP_201_CREATED,
     response_model=ReferenceResponse,
     summary="Register an object (201), or replace one with ?replace=true (200)",
-    responses={200: {"model": ReferenceResponse, "description": "replaced"}}
-    | errors(401, 403, 409, 413, 415, 422, 503, 504),
+    responses={
+        200: {
+            "model": ReferenceResponse,
+            "description": "replaced, or already registered with the same points (identical: "
+            "nothing changed, so a registration is safe to send again)",
+        }
+    }
+    | errors(401, 403, 409, 413, 415, 422, 503, 504, 507),
     openapi_extra={"requestBody": BODY},
     dependencies=[AdminAccess],
 )
@@ -79,14 +88,27 @@ async def register(
     else:
         fields, source = json_object(await request.body()), None
     poses = settings.gallery.self_check_poses if self_check else 0
-    reference, created, checks = await limiter.write(
+    reference, outcome, checks = await limiter.write(
         _register, catalog, settings, fields, source, replace, poses
     )
-    response.status_code = status.HTTP_201_CREATED if created else status.HTTP_200_OK
+    response.status_code = status.HTTP_201_CREATED if outcome == CREATED else status.HTTP_200_OK
+    return answer_of(reference, outcome, checks)
+
+
+IDENTICAL_MESSAGE = (
+    "already registered, identical: the same points were stored before; nothing changed"
+)
+MAX_BATCH = 200  # parts in one POST /references/batch
+
+
+def answer_of(reference: Reference, outcome: str, checks: list[dict] | None) -> ReferenceResponse:
+    """A registration's answer: the reference, its outcome and self-check, the warnings."""
     return ReferenceResponse(
         **_info(reference).model_dump(),
         self_check=None if checks is None else [SelfCheck.model_validate(c) for c in checks],
         warnings=warnings(reference, checks),
+        outcome=outcome,
+        message=IDENTICAL_MESSAGE if outcome == IDENTICAL else None,
     )
 
 
@@ -98,7 +120,7 @@ def _register(
     source: tuple[bytes, str | None] | None,
     replace: bool,
     self_check_poses: int,
-) -> tuple[Reference, bool, list[dict] | None]:
+) -> tuple[Reference, str, list[dict] | None]:
     """Validate, read the points, compute and store the reference (in a worker thread)."""
     known_fields(fields, ReferenceRequest.model_fields)
     identity = parse(ReferenceIdentity, {k: v for k, v in fields.items() if k != "points"})
@@ -117,6 +139,81 @@ def _register(
         mesh=upload.mesh,
         face_index=upload.face_index,
     )
+
+
+@router.post(
+    "/batch",
+    response_model=ReferenceBatchResponse,
+    summary="Register several parts at once, all or none, with one refit of the classifier",
+    responses=errors(401, 403, 409, 413, 415, 422, 503, 504, 507),
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {MULTIPART: {"schema": {"$ref": "#/components/schemas/ReferenceBatch"}}},
+        }
+    },
+    dependencies=[AdminAccess],
+)
+async def register_batch(
+    request: Request,
+    response: Response,
+    catalog: CatalogDep,
+    settings: SettingsDep,
+    limiter: LimiterDep,
+    replace: Annotated[bool, Query(description="replace references of those names")] = False,
+    self_check: Annotated[bool, Query(description="align each new reference with itself")] = True,
+) -> ReferenceBatchResponse:
+    """Multipart: one ``file`` field a part (STL, OBJ, PLY, PCD, NPY) and, optionally, a ``name``
+    field for each, in the same order (else each part is named for its file, without the
+    suffix). One transaction stores all of them, or none (a bad file, a name taken by other
+    points); the same points under the same name again are ``identical``, as for one part."""
+    body_kind(request, MULTIPART)
+    files, given = await read_parts(request, MAX_BATCH)
+    if given and len(given) != len(files):
+        raise invalid(f"{len(given)} 'name' fields for {len(files)} files: send one a file", "name")
+    names = given or [PurePath(filename or "").stem for _, filename in files]
+    for name in names:
+        parse(ReferenceIdentity, {"name": name})
+    if len(set(names)) < len(names):
+        twice = sorted({name for name in names if names.count(name) > 1})
+        raise invalid(f"the batch names {', '.join(twice)} more than once", "name")
+    poses = settings.gallery.self_check_poses if self_check else 0
+    refits = catalog.engine.refits
+    results = await limiter.write(
+        _register_batch,
+        catalog,
+        settings,
+        list(zip(names, files, strict=True)),
+        replace,
+        poses,
+        budget_s=settings.limits.request_timeout_s * len(files),
+    )
+    created = any(outcome == CREATED for _, outcome, _ in results)
+    response.status_code = status.HTTP_201_CREATED if created else status.HTTP_200_OK
+    return ReferenceBatchResponse(
+        references=[answer_of(*result) for result in results],
+        refits=catalog.engine.refits - refits,
+    )
+
+
+def _register_batch(
+    job: Job,
+    catalog: Catalog,
+    settings: Settings,
+    uploads: list[tuple[str, tuple[bytes, str | None]]],
+    replace: bool,
+    self_check_poses: int,
+) -> list[tuple[Reference, str, list[dict] | None]]:
+    limits = settings.limits
+    parts = []
+    for name, source in uploads:
+        try:
+            upload = read_upload(*source, settings.gallery.reference_points, limits.max_points)
+            points = validate_points(upload.points, limits.min_points, limits.max_points)
+        except InvalidPoints as error:
+            raise InvalidPoints(f"part '{name}' ({source[1]}): {error}") from None
+        parts.append(Part(name, points, upload.mesh, upload.face_index))
+    return catalog.register_many(parts, replace, self_check_poses, job.commit)
 
 
 @router.get(
