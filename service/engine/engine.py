@@ -42,7 +42,7 @@ from service.engine.icp import Surface
 from service.engine.mapping import Mapper
 from service.engine.normalize import has_extent, normalize, radius, subsample
 from service.engine.normals import estimate_normals, mesh_normals, orient_by_views
-from service.engine.principal_axes import flatness
+from service.engine.principal_axes import flatness, one_line, thinness
 from service.engine.projection import DepthImage
 from service.engine.query import Observed, Query, Ranking, Stopwatch
 from service.engine.reference import Reference
@@ -58,6 +58,7 @@ from service.engine.tuning import (
     FLAT,
     INSTANCE_FLOOR,
     KEEP_SHARE,
+    LINE,
     MAX_ALTERNATIVES,
     POOR_FIT,
     RIGHT_EITHER_WAY,
@@ -330,6 +331,8 @@ class Engine:
         """Steps 1-8 on one reading of the observation."""
         if not has_extent(radius(reading.points), float(np.abs(reading.points).max())):
             return self._at_one_place(query, reading.points)
+        if (thin := thinness(reading.points - reading.points.mean(axis=0))) < LINE:
+            return self._on_one_line(query, reading.points, thin)
         observed = self.normalise(query, reading)  # 1
         observed.mapped = self.map(observed.points)  # 2
         query.clock.lap("map")
@@ -547,6 +550,13 @@ class Engine:
                 "place: there is no shape to recognise; send the part's points"
             ],
         )
+
+    def _on_one_line(self, query: Query, scene: np.ndarray, thin: float) -> Alignment:
+        """A no-match answer for a reading whose points lie on one line (``tuning.LINE``)."""
+        snapshot = query.snapshot
+        scores = np.zeros(len(snapshot.classifier.labels))
+        reasons = [one_line(len(scene), thin)]
+        return self._unanswered(snapshot, query.allowed, scene, scores, reasons)
 
     # --- a whole frame ----------------------------------------------------------------
 
