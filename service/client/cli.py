@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -41,7 +42,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         with Client(arguments.url, arguments.api_key, arguments.timeout) as client:
             return arguments.run(client, arguments)
     except ServiceError as error:
-        return report_error(error, arguments.json)
+        return report_error(in_cli_words(error), arguments.json)
     except OSError as error:  # a file that cannot be read
         return report_error(ServiceError(f"{error.strerror}: {error.filename}"), arguments.json)
 
@@ -216,6 +217,17 @@ def describe_reference(reference: Reference) -> str:
     if reference.symmetry:
         text += f"\n  symmetry: {reference.symmetry.get('kind')}"
     return "\n".join([text, *(f"  warning: {warning}" for warning in reference.warnings)])
+
+
+def in_cli_words(error: ServiceError) -> ServiceError:
+    """The error with the service's names for a registration's options said as this command
+    line's flags: the service says "pass replace=true" (``?replace=true``), ``dpc-mn`` takes
+    ``--replace`` (and ``--name``)."""
+    if not re.search(r"\bpass \??replace=true\b", error.detail):
+        return error
+    detail = re.sub(r"\bpass \??replace=true\b", "pass --replace", error.detail)
+    detail = detail.replace("pick another name", "pick another --name")
+    return type(error)(detail, error.status, error.request_id, error.retry_after)
 
 
 def report_error(error: ServiceError, as_json: bool) -> int:
