@@ -396,6 +396,7 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
                 "format": "binary",
                 "description": "a mesh (.stl, .obj, .ply) or a cloud (.ply, .pcd, .npy)",
             },
+            "units": ReferenceRequest.model_json_schema()["properties"]["units"],
         },
     }
     options = AlignOptions.model_json_schema()["properties"]

@@ -21,6 +21,7 @@ from service.api import ply
 from service.api.clouds import Cloud, organized
 from service.api.pcd import read_pcd
 from service.engine.sampling import MeshError, load_mesh, sample_surface_faces
+from service.engine.units import UNITS
 from service.errors import InvalidPoints
 
 SUFFIXES = (".stl", ".obj", ".ply", ".pcd", ".npy")
@@ -40,6 +41,18 @@ class Upload:
     @classmethod
     def of(cls, cloud: Cloud) -> Upload:
         return cls(cloud.points, index=cloud.index, shape=cloud.shape)
+
+
+def in_metres(
+    points: np.ndarray, mesh: trimesh.Trimesh | None, units: str | None
+) -> tuple[np.ndarray, trimesh.Trimesh | None]:
+    """Points (float32) and the mesh they were sampled on, sent in ``units`` (``m``, ``mm``,
+    ``cm``, ``in``; None: as sent), in metres."""
+    factor = UNITS[units or "m"]
+    if factor == 1.0:
+        return points, mesh
+    scaled = (np.asarray(points, dtype=np.float64) * factor).astype(np.float32)
+    return scaled, None if mesh is None else mesh.copy().apply_scale(factor)
 
 
 def read_points(

@@ -20,6 +20,7 @@ Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Row4 = Annotated[list[float], Field(min_length=4, max_length=4)]
 Matrix3 = Annotated[list[Vector3], Field(min_length=3, max_length=3)]
 Matrix4 = Annotated[list[Row4], Field(min_length=4, max_length=4)]
+Units = Literal["m", "mm", "cm", "in"]
 Points = Annotated[
     list[Vector3],
     Field(description="[x, y, z] triples in the sensor's units", examples=[[[0, 0, 0]]]),
@@ -128,8 +129,19 @@ class ReferenceIdentity(BaseModel):
     name: ReferenceName
 
 
+class UnitsChoice(BaseModel):
+    """A registration's ``units`` (a query parameter, or a JSON or form field)."""
+
+    units: Units | None = None
+
+
 class ReferenceRequest(ReferenceIdentity):
     points: Points
+    units: Units | None = Field(
+        None,
+        description="the unit the points are in: m, mm, cm or in; the reference is stored in "
+        "metres (its points times the unit). Default: stored as sent",
+    )
 
 
 # Responses
@@ -250,7 +262,11 @@ class ReferenceResponse(ReferenceInfo):
     warnings: list[str] = Field(
         default_factory=list,
         description="what the check found that an operator should know: renders answered as "
-        "another part, poses off by more than 5 degrees, a symmetry",
+        "another part, poses off by more than 5 degrees, a symmetry, a size outside a camera's "
+        "working range or far from every other part's (naming the likely unit)",
+    )
+    units: Units | None = Field(
+        None, description="registration only: the unit the points were sent in, if given"
     )
 
 

@@ -1,6 +1,7 @@
 """``dpc-mn``: the service from a shell, through ``service.client.Client``.
 
     dpc-mn register bracket.stl --name bracket-a
+    dpc-mn register bracket-cad.stl --name bracket-b --units mm
     dpc-mn align scan.pcd --candidates bracket-a
     dpc-mn align depth.png --fx 300 --fy 300 --cx 160 --cy 120 --mask part.png --json
     dpc-mn references
@@ -32,6 +33,7 @@ EPILOG = """exit status:
   3  align answered, but the verdict is "uncertain" or "no_match"
   4  the service could not be reached"""
 URL_ENV, KEY_ENV = "DPCMN_URL", "DPCMN_API_KEY"
+UNITS = ("m", "mm", "cm", "in")  # POST /references' units
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -106,6 +108,11 @@ def parser() -> argparse.ArgumentParser:
     register.add_argument("--name", required=True, help="1-64 characters of A-Z a-z 0-9 . _ -")
     register.add_argument("--replace", action="store_true", help="replace a part of that name")
     register.add_argument(
+        "--units",
+        choices=UNITS,
+        help="the unit the file's points are in (stored in metres; default: as they are)",
+    )
+    register.add_argument(
         "--no-self-check", dest="self_check", action="store_false", help="skip the self-check"
     )
 
@@ -141,7 +148,11 @@ def run_align(client: Client, arguments: argparse.Namespace) -> int:
 
 def run_register(client: Client, arguments: argparse.Namespace) -> int:
     reference = client.register(
-        arguments.name, arguments.file, replace=arguments.replace, self_check=arguments.self_check
+        arguments.name,
+        arguments.file,
+        replace=arguments.replace,
+        self_check=arguments.self_check,
+        units=arguments.units,
     )
     print(json.dumps(reference.raw) if arguments.json else describe_reference(reference))
     return OK
@@ -216,18 +227,27 @@ def describe_reference(reference: Reference) -> str:
         text += f"\n  self-check: {right}/{len(checks)} recognised, worst rotation {worst:.1f} deg"
     if reference.symmetry:
         text += f"\n  symmetry: {reference.symmetry.get('kind')}"
-    return "\n".join([text, *(f"  warning: {warning}" for warning in reference.warnings)])
+    warnings = (f"  warning: {as_flags(warning)}" for warning in reference.warnings)
+    return "\n".join([text, *warnings])
 
 
 def in_cli_words(error: ServiceError) -> ServiceError:
     """The error with the service's names for a registration's options said as this command
-    line's flags: the service says "pass replace=true" (``?replace=true``), ``dpc-mn`` takes
-    ``--replace`` (and ``--name``)."""
-    if not re.search(r"\bpass \??replace=true\b", error.detail):
+    line's flags (``as_flags``)."""
+    detail = as_flags(error.detail)
+    if detail == error.detail:
         return error
-    detail = re.sub(r"\bpass \??replace=true\b", "pass --replace", error.detail)
-    detail = detail.replace("pick another name", "pick another --name")
     return type(error)(detail, error.status, error.request_id, error.retry_after)
+
+
+def as_flags(text: str) -> str:
+    """The service's words for a registration's query parameters as ``dpc-mn``'s flags: it says
+    "pass replace=true" and "units=mm", the command line takes ``--replace`` and ``--units mm``
+    (and, once a taken name is said, ``--name``)."""
+    if re.search(r"\bpass \??replace=true\b", text):
+        text = text.replace("pick another name", "pick another --name")
+    text = re.sub(r"\??\breplace=true\b", "--replace", text)
+    return re.sub(r"\??\bunits=(m|mm|cm|in)\b", r"--units \1", text)
 
 
 def report_error(error: ServiceError, as_json: bool) -> int:

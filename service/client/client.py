@@ -109,8 +109,10 @@ class Client:
         *,
         replace: bool = False,
         self_check: bool = True,
+        units: str | None = None,
     ) -> Reference:
-        """Register a part from a mesh or cloud file, or from points (sent as float32 NPY)."""
+        """Register a part from a mesh or cloud file, or from points (sent as float32 NPY);
+        ``units`` (``m``, ``mm``, ``cm``, ``in``): the unit they are in, stored in metres."""
         if isinstance(path_or_points, str | Path):
             path = Path(path_or_points)
             file = (path.name, path.read_bytes())
@@ -119,7 +121,7 @@ class Client:
         answer = self._request(
             "POST",
             "/references",
-            data={"name": name},
+            data={"name": name} | ({"units": units} if units else {}),
             files={"file": file},
             params={"replace": _flag(replace), "self_check": _flag(self_check)},
         )

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Query, Request, Response, status
 from service.api.auth import AdminAccess, ReadAccess
 from service.api.dependencies import CatalogDep, EngineDep, LimiterDep, SettingsDep
 from service.api.limiter import Job
-from service.api.parsers import Upload, read_upload
+from service.api.parsers import Upload, in_metres, read_upload
 from service.api.routes.common import (
     JSON,
     MULTIPART,
@@ -30,11 +30,14 @@ from service.api.schemas import (
     ReferenceRequest,
     ReferenceResponse,
     SelfCheck,
+    Units,
+    UnitsChoice,
 )
 from service.api.uploads import read_form
 from service.api.validation import validate_points
 from service.engine.engine import Engine
 from service.engine.reference import Reference
+from service.engine.units import size_warnings
 from service.errors import UnknownReference
 from service.gallery.catalog import Catalog
 from service.settings import Settings
@@ -70,24 +73,41 @@ async def register(
     limiter: LimiterDep,
     replace: Annotated[bool, Query(description="replace a reference of that name")] = False,
     self_check: Annotated[bool, Query(description="align the new reference with itself")] = True,
+    units: Annotated[Units | None, Query(description=UNITS_DESCRIPTION)] = None,
 ) -> ReferenceResponse:
-    """JSON ``{"name", "points"}``, or multipart ``name`` + ``file`` (STL, OBJ, PLY, PCD, NPY)."""
+    """JSON ``{"name", "points"}``, or multipart ``name`` + ``file`` (STL, OBJ, PLY, PCD, NPY);
+    ``units`` as a query parameter, a JSON field or a form field (the body's wins)."""
     if body_kind(request, JSON, MULTIPART) == MULTIPART:
-        form = await read_form(request, ("file",), ("name",), "the mesh or cloud")
-        name = form.value("name")
-        fields, source = ({} if name is None else {"name": name}), form.files["file"]
+        form = await read_form(request, ("file",), ("name", "units"), "the mesh or cloud")
+        fields = {k: v for k in ("name", "units") if (v := form.value(k)) is not None}
+        source = form.files["file"]
     else:
         fields, source = json_object(await request.body()), None
+    units = parse(UnitsChoice, {"units": fields.pop("units", units)}).units
     poses = settings.gallery.self_check_poses if self_check else 0
     reference, created, checks = await limiter.write(
-        _register, catalog, settings, fields, source, replace, poses
+        _register, catalog, settings, fields, source, replace, poses, units
     )
     response.status_code = status.HTTP_201_CREATED if created else status.HTTP_200_OK
     return ReferenceResponse(
         **_info(reference).model_dump(),
         self_check=None if checks is None else [SelfCheck.model_validate(c) for c in checks],
-        warnings=warnings(reference, checks),
+        warnings=warnings(reference, checks) + _size_warnings(catalog.engine, reference, units),
+        units=units,
     )
+
+
+UNITS_DESCRIPTION = (
+    "the unit the points are in: m, mm, cm or in; the reference is stored in metres (its "
+    "points times the unit). Default: stored as sent"
+)
+
+
+def _size_warnings(engine: Engine, reference: Reference, units: str | None) -> list[str]:
+    """A size outside a camera's range, or far from every other part's, naming the unit."""
+    others = {n: engine.get(n) for n in engine.names() if n != reference.name}
+    scales = {n: float(r.scale) for n, r in others.items() if r is not None}
+    return size_warnings(reference.name, float(reference.scale), units, scales)
 
 
 def _register(
@@ -98,8 +118,10 @@ def _register(
     source: tuple[bytes, str | None] | None,
     replace: bool,
     self_check_poses: int,
+    units: str | None = None,
 ) -> tuple[Reference, bool, list[dict] | None]:
-    """Validate, read the points, compute and store the reference (in a worker thread)."""
+    """Validate, read the points (stored in metres, from ``units``), compute and store the
+    reference (in a worker thread)."""
     known_fields(fields, ReferenceRequest.model_fields)
     identity = parse(ReferenceIdentity, {k: v for k, v in fields.items() if k != "points"})
     limits = settings.limits
@@ -108,13 +130,14 @@ def _register(
     else:
         upload = read_upload(*source, settings.gallery.reference_points, limits.max_points)
     points = validate_points(upload.points, limits.min_points, limits.max_points)
+    points, mesh = in_metres(points, upload.mesh, units)
     return catalog.register(
         identity.name,
         points,
         replace,
         self_check_poses,
         job.commit,
-        mesh=upload.mesh,
+        mesh=mesh,
         face_index=upload.face_index,
     )
 
