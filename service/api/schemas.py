@@ -157,6 +157,11 @@ class AlternativePose(BaseModel):
     rotation: Matrix3
     translation: Vector3
     confidence: float
+    label: str | None = Field(
+        None,
+        description="another registered part that fits alike (a look-alike of the answer's): "
+        "its pose; absent for another pose of the answer's own part",
+    )
 
 
 class AlignResponse(BaseModel):
@@ -236,6 +241,10 @@ class SelfCheck(BaseModel):
     alignment_error_normalized: float
     verdict: str
     confidence: float | None
+    runner_up: str | None = Field(None, description="the other part that fitted best")
+    runner_up_fit: float | None = Field(
+        None, description="its fit x coverage over the answer's (1: as well; 0.9 and up: alike)"
+    )
 
 
 class ReferenceInfo(BaseModel):
@@ -250,6 +259,12 @@ class ReferenceInfo(BaseModel):
         '{"kind": "revolution", "axis": [x, y, z], "flip": bool, "centre": [x, y, z]} or '
         '{"kind": "discrete", "rotations": [3x3, ...], "centre": [x, y, z]}; /align answers '
         "the equivalent pose whose rotation is nearest the identity"
+    )
+    look_alikes: list[str] = Field(
+        default_factory=list,
+        description="registered parts no view tells this one from: the same points "
+        "(points_sha256), or a registration check that answered its renders as them; /align "
+        "answers ambiguous where one fits as well",
     )
 
 

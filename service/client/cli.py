@@ -208,7 +208,11 @@ def describe_pose(pose: Pose) -> str:
     ]
     lines += [f"  reason: {reason}" for reason in pose.reasons]
     if pose.ambiguous:
-        lines.append(f"  ambiguous: {len(pose.alternatives)} other pose(s) fit alike")
+        parts = sorted({a.label for a in pose.alternatives if a.label})
+        poses = sum(a.label is None for a in pose.alternatives)
+        said = [f"{poses} other pose(s)"] if poses else []
+        said += [f"look-alike part(s) {', '.join(parts)}"] if parts else []
+        lines.append(f"  ambiguous: {' and '.join(said) or 'other poses'} fit alike")
     if pose.points_set_aside:
         lines.append(f"  {pose.points_set_aside} points set aside (support plane, strays)")
     timings = ", ".join(f"{k} {v:.1f}" for k, v in pose.timings_ms.items())

@@ -26,6 +26,7 @@ from service.engine.answer import Alignment, Detection, SceneAnswer
 from service.engine.confidence import Calibration
 from service.engine.entry import Entry
 from service.engine.frame import Frame
+from service.engine.look_alikes import doubt
 from service.engine.normalize import radius, subsample
 from service.engine.projection import DepthImage
 from service.engine.query import Query, Stopwatch
@@ -348,6 +349,7 @@ class Scan:
         threshold = next(t for t in (self.min_confidence, self.calibration.accept) if t is not None)
         if answer.confidence >= threshold:
             answer.verdict, answer.reasons = "match", []
+            doubt(answer, share=False)  # the chain's confidence, shared among them, is a feature
             return
         answer.verdict = "uncertain" if answer.confidence >= 0.2 else "no_match"
         reasons = [f"the confidence {answer.confidence:.2f} is below the threshold {threshold:.2f}"]
@@ -362,6 +364,7 @@ class Scan:
                 "in view: it may be hidden by others, or not this part"
             )
         answer.reasons = reasons + [r for r in answer.reasons if "threshold" not in r]
+        doubt(answer, share=False)
 
     def answer(
         self,

@@ -21,6 +21,7 @@ import trimesh
 
 from service import memory
 from service.engine.engine import Engine
+from service.engine.look_alikes import confused
 from service.engine.reference import Reference
 from service.engine.symmetry import Symmetry
 from service.errors import ReferenceExists
@@ -145,8 +146,30 @@ class Catalog:
         checks = (
             self.engine.self_check(reference, self_check_poses, mesh) if self_check_poses else None
         )
+        if others := confused(name, checks):
+            reference = self.note_look_alikes(name, others) or reference
         memory.release_free_heap()
         return reference, not existed, checks
+
+    def note_look_alikes(self, name: str, others: list[str]) -> Reference | None:
+        """Store with the reference ``name`` that its registration check could not tell it from
+        ``others`` (``service.engine.look_alikes``, with their points now); the reference as
+        noted, or None when it changed meanwhile (replaced, removed, or another replica's)."""
+        with self._write_lock:
+            reference = self.engine.get(name)
+            if reference is None:
+                return None
+            claims = dict(reference.look_alikes or {})
+            for other in others:
+                if (held := self.engine.get(other)) is not None and other != name:
+                    claims[other] = held.points_sha256
+            noted = reference.with_(look_alikes=claims)
+            checksum = self.store.rewrite(noted, self.model_hash, was=self._held.get(name, ""))
+            if checksum is None:
+                return None
+            self.engine.annotate(noted)
+            self._held[name] = checksum
+        return noted
 
     def remove(self, name: str, commit: Callable[[], None] = lambda: None) -> None:
         """Delete a reference from the store and the engine; ``commit`` as for ``register``.

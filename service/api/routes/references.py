@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import Annotated
 
 import numpy as np
@@ -36,6 +37,7 @@ from service.api.schemas import (
 from service.api.uploads import read_form
 from service.api.validation import validate_points
 from service.engine.engine import Engine
+from service.engine.look_alikes import confused, same_points, told_from
 from service.engine.reference import Reference
 from service.engine.units import size_warnings
 from service.errors import UnknownReference
@@ -89,10 +91,14 @@ async def register(
         _register, catalog, settings, fields, source, replace, poses, units
     )
     response.status_code = status.HTTP_201_CREATED if created else status.HTTP_200_OK
+    engine = catalog.engine
+    alike, named = look_alike_warnings(engine, reference, checks)
     return ReferenceResponse(
-        **_info(reference).model_dump(),
+        **_info(reference, engine.look_alikes(reference.name)).model_dump(),
         self_check=None if checks is None else [SelfCheck.model_validate(c) for c in checks],
-        warnings=warnings(reference, checks) + _size_warnings(catalog.engine, reference, units),
+        warnings=alike
+        + warnings(reference, checks, told=named)
+        + _size_warnings(engine, reference, units),
         units=units,
     )
 
@@ -151,7 +157,9 @@ def _register(
 )
 async def list_references(engine: EngineDep) -> ReferenceList:
     references = (engine.get(name) for name in sorted(engine.names()))
-    return ReferenceList(references=[_info(r) for r in references if r is not None])
+    return ReferenceList(
+        references=[_info(r, engine.look_alikes(r.name)) for r in references if r is not None]
+    )
 
 
 @router.get(
@@ -162,7 +170,7 @@ async def list_references(engine: EngineDep) -> ReferenceList:
     dependencies=[ReadAccess],
 )
 async def describe(name: str, engine: EngineDep) -> ReferenceInfo:
-    return _info(_known(engine, name))
+    return _info(_known(engine, name), engine.look_alikes(name))
 
 
 @router.get(
@@ -221,23 +229,59 @@ def _known(engine: Engine, name: str) -> Reference:
     return reference
 
 
-def _info(reference: Reference) -> ReferenceInfo:
+def _info(reference: Reference, look_alikes: Iterable[str] = ()) -> ReferenceInfo:
     return ReferenceInfo(
         name=reference.name,
         num_points=len(reference.points),
         scale=float(reference.scale),
         points_sha256=reference.points_sha256,
         symmetry=reference.symmetry or {"kind": "none"},
+        look_alikes=list(look_alikes),
     )
 
 
-def warnings(reference: Reference, checks: list[dict] | None) -> list[str]:
-    """What the registration check found that an operator should know."""
+def look_alike_warnings(
+    engine: Engine, reference: Reference, checks: list[dict] | None
+) -> tuple[list[str], set[str]]:
+    """What an operator should know of the registered parts the new one looks alike
+    (``service.engine.look_alikes``): the same points, or a check that could not tell them
+    apart; and which parts that names."""
+    name = reference.name
+    others = [r for n in engine.names() if n != name and (r := engine.get(n)) is not None]
+    said, named = [], set()
+    if same := same_points(reference, others):
+        named.update(same)
+        said.append(
+            f"{name}'s points are identical to those of {' and '.join(same)} (the same "
+            "points_sha256): no view tells them apart, so /align answers ambiguous among them "
+            "(their poses in alternatives, never a match); delete the duplicate, or send "
+            "candidates naming the part the cell expects"
+        )
+    for other in confused(name, checks):
+        if other in named:
+            continue
+        named.add(other)
+        renders = [c for c in checks or [] if told_from(name, c) == other]
+        full = " (the full cloud among them)" if any(c["render"] == "full" for c in renders) else ""
+        said.append(
+            f"the registration check could not tell {name} from {other}: {len(renders)} of "
+            f"{len(checks or [])} renders{full} were answered as {other}, or {other} fitted them "
+            f"alike. /align answers ambiguous where {other} fits as well (never a match); send "
+            "candidates naming the part the cell expects where you can"
+        )
+    return said, named
+
+
+def warnings(
+    reference: Reference, checks: list[dict] | None, told: set[str] | None = None
+) -> list[str]:
+    """What the registration check found that an operator should know (of the parts in
+    ``told``, said already, nothing more)."""
     said = []
     if checks:
         confused: dict[str, int] = {}
         for check in checks:
-            if not check["label_ok"]:
+            if not check["label_ok"] and check["label"] not in (told or set()):
                 confused[check["label"]] = confused.get(check["label"], 0) + 1
         for other, count in confused.items():
             said.append(
