@@ -1,9 +1,10 @@
 """``python -m service``: check, then serve the app with uvicorn on the settings' host and port.
 
 ``--host`` and ``--port`` override ``DPC_SERVER__HOST`` and ``DPC_SERVER__PORT`` (see ``--help``).
-Bad settings or a failed startup check (``service.api.startup``) end the process with one line on
-stderr and exit status 2, before anything listens; no traceback. A ``DPC_`` variable that names no
-setting is logged as a warning first.
+Bad settings, a port that cannot be had (``service.api.listener``) or a failed startup check
+(``service.api.startup``) end the process with one line on stderr and exit status 2, before
+anything listens; no traceback. A ``DPC_`` variable that names no setting is logged as a
+warning first.
 """
 
 from __future__ import annotations
@@ -22,7 +23,10 @@ from pydantic_settings import SettingsError
 from service import memory
 from service.api import logs, startup
 from service.api.app import create_app
+from service.api.listener import listen
 from service.settings import Settings
+
+UVICORN_STARTUP_FAILURE = 3
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -40,11 +44,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     memory.fix_mmap_threshold()  # before the model, the gallery and the worker threads
     startup.quiet_onnxruntime()
     try:
+        sock = listen(settings.server.host, settings.server.port)  # a port in use: said at once
         prepared = startup.prepare(settings)  # here, so that a failure ends with one line
     except startup.StartupError as error:
         fail(str(error))
     # the lifespan logs the model's path, hash and execution providers once they are loaded
-    uvicorn.run(
+    config = uvicorn.Config(
         create_app(settings, prepared),
         host=settings.server.host,
         port=settings.server.port,
@@ -52,6 +57,13 @@ def main(argv: Sequence[str] | None = None) -> None:
         log_config=None,  # uvicorn's own lines go through our (JSON) handler
         access_log=False,  # logs.RequestLog writes one line a request, without the query
     )
+    server = uvicorn.Server(config)
+    try:
+        server.run(sockets=[sock])
+    except KeyboardInterrupt:  # Ctrl-C once serving: a normal stop, as uvicorn.run's
+        pass
+    if not server.started:  # the app's start-up failed: uvicorn.run's own status
+        sys.exit(UVICORN_STARTUP_FAILURE)
 
 
 def parser() -> argparse.ArgumentParser:
@@ -62,7 +74,8 @@ def parser() -> argparse.ArgumentParser:
         description="Serve the DPC-MN pose service over HTTP (the API, /docs and the console at "
         "/ui). Every setting is an environment variable DPC_<GROUP>__<FIELD> "
         "(service/settings.py); the flags below override theirs.",
-        epilog="Exit status 2: bad settings or a failed start-up check, said in one line.",
+        epilog="Exit status 2: bad settings, a port that cannot be had, or a failed start-up "
+        "check, said in one line.",
     )
     parser.add_argument(
         "--host", help=f"address to listen on (DPC_SERVER__HOST; default {defaults.host})"

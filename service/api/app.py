@@ -420,6 +420,7 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
                 "format": "binary",
                 "description": "a mesh (.stl, .obj, .ply) or a cloud (.ply, .pcd, .npy)",
             },
+            "units": ReferenceRequest.model_json_schema()["properties"]["units"],
         },
     }
     schemas["ReferenceBatch"] = {

@@ -17,9 +17,11 @@ from pathlib import PurePath
 import numpy as np
 import trimesh
 
+from service.api import ply
 from service.api.clouds import Cloud, organized
 from service.api.pcd import read_pcd
 from service.engine.sampling import MeshError, load_mesh, sample_surface_faces
+from service.engine.units import UNITS
 from service.errors import InvalidPoints
 
 SUFFIXES = (".stl", ".obj", ".ply", ".pcd", ".npy")
@@ -41,6 +43,18 @@ class Upload:
         return cls(cloud.points, index=cloud.index, shape=cloud.shape)
 
 
+def in_metres(
+    points: np.ndarray, mesh: trimesh.Trimesh | None, units: str | None
+) -> tuple[np.ndarray, trimesh.Trimesh | None]:
+    """Points (float32) and the mesh they were sampled on, sent in ``units`` (``m``, ``mm``,
+    ``cm``, ``in``; None: as sent), in metres."""
+    factor = UNITS[units or "m"]
+    if factor == 1.0:
+        return points, mesh
+    scaled = (np.asarray(points, dtype=np.float64) * factor).astype(np.float32)
+    return scaled, None if mesh is None else mesh.copy().apply_scale(factor)
+
+
 def read_points(
     data: bytes, filename: str | None, mesh_points: int, max_points: int, seed: int = 0
 ) -> np.ndarray:
@@ -60,8 +74,11 @@ def read_upload(
         return Upload.of(read_npy(data, max_points))
     if kind == ".pcd":
         return Upload.of(read_pcd(data, max_points))
-    if kind == ".ply" and not ply_has_faces(data):
-        return Upload(read_ply_cloud(data))
+    if kind == ".ply":
+        header = ply.read_header(data)
+        ply.check_body(header, data)
+        if not header.has_faces:
+            return Upload(read_ply_cloud(data))
     try:
         mesh = load_mesh(io.BytesIO(data), file_type=kind.lstrip("."))
     except MeshError as error:
@@ -96,9 +113,19 @@ def file_kind(data: bytes, filename: str | None) -> str:
 def read_npy(data: bytes, max_points: int) -> Cloud:
     """An .npy array of shape (N, 3), numbers, or an organized frame of shape (H, W, 3) whose
     missing pixels are NaN or infinity; never unpickles."""
+    if not data.startswith(NPY_MAGIC):  # numpy would read it as pickled data and say so
+        raise InvalidPoints(
+            "the file is not an NPY file (it does not start with NPY's magic bytes "
+            "'\\x93NUMPY'): write the array with numpy.save, or send the points as PLY or PCD"
+        )
+    if npy_dtype(data).hasobject:
+        raise InvalidPoints(
+            "the NPY file is unreadable here: its array holds Python objects, which the service "
+            "never loads; save an array of numbers (float32 or float64) of shape (N, 3)"
+        )
     try:
         array = np.load(io.BytesIO(data), allow_pickle=False)
-    except Exception as error:  # object arrays (need pickle), bad headers, truncated data
+    except Exception as error:  # bad headers, truncated data
         raise InvalidPoints(f"the NPY file is unreadable: {error}") from error
     if not isinstance(array, np.ndarray):
         raise InvalidPoints("the NPY file holds no array")
@@ -111,14 +138,20 @@ def read_npy(data: bytes, max_points: int) -> Cloud:
     return Cloud(array)
 
 
-def ply_has_faces(data: bytes) -> bool:
-    """Whether a PLY header declares at least one face (a mesh) rather than only vertices."""
-    end = data.find(b"end_header")
-    if end < 0:
-        raise InvalidPoints("the PLY file has no 'end_header' line")
-    header = data[:end].decode("ascii", errors="replace")
-    match = re.search(r"^element\s+face\s+(\d+)", header, flags=re.MULTILINE)
-    return bool(match) and int(match.group(1)) > 0
+def npy_dtype(data: bytes) -> np.dtype:
+    """The dtype an NPY file's header declares, read without reading the array."""
+    stream = io.BytesIO(data)
+    try:
+        major, _ = np.lib.format.read_magic(stream)
+        read = np.lib.format.read_array_header_1_0
+        if major > 1:
+            read = np.lib.format.read_array_header_2_0
+        _, _, dtype = read(stream)
+    except Exception as error:  # numpy raises ValueError, SyntaxError, ... for a bad header
+        raise InvalidPoints(
+            f"the NPY file is unreadable: its header is damaged ({error})"
+        ) from None
+    return dtype
 
 
 def read_ply_cloud(data: bytes) -> np.ndarray:

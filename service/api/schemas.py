@@ -20,6 +20,7 @@ Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Row4 = Annotated[list[float], Field(min_length=4, max_length=4)]
 Matrix3 = Annotated[list[Vector3], Field(min_length=3, max_length=3)]
 Matrix4 = Annotated[list[Row4], Field(min_length=4, max_length=4)]
+Units = Literal["m", "mm", "cm", "in"]
 Points = Annotated[
     list[Vector3],
     Field(description="[x, y, z] triples in the sensor's units", examples=[[[0, 0, 0]]]),
@@ -128,8 +129,19 @@ class ReferenceIdentity(BaseModel):
     name: ReferenceName
 
 
+class UnitsChoice(BaseModel):
+    """A registration's ``units`` (a query parameter, or a JSON or form field)."""
+
+    units: Units | None = None
+
+
 class ReferenceRequest(ReferenceIdentity):
     points: Points
+    units: Units | None = Field(
+        None,
+        description="the unit the points are in: m, mm, cm or in; the reference is stored in "
+        "metres (its points times the unit). Default: stored as sent",
+    )
 
 
 # Responses
@@ -145,6 +157,11 @@ class AlternativePose(BaseModel):
     rotation: Matrix3
     translation: Vector3
     confidence: float
+    label: str | None = Field(
+        None,
+        description="another registered part that fits alike (a look-alike of the answer's): "
+        "its pose; absent for another pose of the answer's own part",
+    )
 
 
 class AlignResponse(BaseModel):
@@ -230,6 +247,10 @@ class SelfCheck(BaseModel):
     alignment_error_normalized: float
     verdict: str
     confidence: float | None
+    runner_up: str | None = Field(None, description="the other part that fitted best")
+    runner_up_fit: float | None = Field(
+        None, description="its fit x coverage over the answer's (1: as well; 0.9 and up: alike)"
+    )
 
 
 class ReferenceInfo(BaseModel):
@@ -245,6 +266,12 @@ class ReferenceInfo(BaseModel):
         '{"kind": "discrete", "rotations": [3x3, ...], "centre": [x, y, z]}; /align answers '
         "the equivalent pose whose rotation is nearest the identity"
     )
+    look_alikes: list[str] = Field(
+        default_factory=list,
+        description="registered parts no view tells this one from: the same points "
+        "(points_sha256), or a registration check that answered its renders as them; /align "
+        "answers ambiguous where one fits as well",
+    )
 
 
 class ReferenceResponse(ReferenceInfo):
@@ -256,7 +283,11 @@ class ReferenceResponse(ReferenceInfo):
     warnings: list[str] = Field(
         default_factory=list,
         description="what the check found that an operator should know: renders answered as "
-        "another part, poses off by more than 5 degrees, a symmetry",
+        "another part, poses off by more than 5 degrees, a symmetry, a size outside a camera's "
+        "working range or far from every other part's (naming the likely unit)",
+    )
+    units: Units | None = Field(
+        None, description="registration only: the unit the points were sent in, if given"
     )
     outcome: Literal["created", "replaced", "identical"] | None = Field(
         None,

@@ -12,6 +12,8 @@ from itertools import chain
 import numpy as np
 
 from service.engine.normalize import has_extent
+from service.engine.principal_axes import one_line, thinness
+from service.engine.tuning import LINE
 from service.errors import InvalidPoints
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
@@ -124,6 +126,8 @@ def _check_values(array: np.ndarray) -> np.ndarray:
             f"all points are (nearly) the same (radius {radius:.3g}): the cloud has no "
             "scale to align"
         )
+    if (thin := thinness(centred)) < LINE:
+        raise InvalidPoints(one_line(len(points), thin))
     return points
 
 

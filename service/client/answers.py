@@ -28,6 +28,7 @@ class Alternative:
     rotation: np.ndarray  # (3, 3)
     translation: np.ndarray  # (3,)
     confidence: float | None
+    label: str | None = None  # a look-alike part's pose (None: another pose of the answer's part)
 
 
 @dataclass(frozen=True)
@@ -82,6 +83,7 @@ class Pose:
                     np.array(a["rotation"], dtype=np.float64),
                     np.array(a["translation"], dtype=np.float64),
                     a.get("confidence"),
+                    a.get("label"),
                 )
                 for a in answer.get("alternatives", [])
             ],

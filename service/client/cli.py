@@ -1,6 +1,7 @@
 """``dpc-mn``: the service from a shell, through ``service.client.Client``.
 
     dpc-mn register bracket.stl --name bracket-a
+    dpc-mn register bracket-cad.stl --name bracket-b --units mm
     dpc-mn register parts/                      # every mesh in the folder: one request, one refit
     dpc-mn align scan.pcd --candidates bracket-a
     dpc-mn align depth.png --fx 300 --fy 300 --cx 160 --cy 120 --mask part.png --json
@@ -22,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -40,6 +42,7 @@ EPILOG = """exit status:
   4  the service could not be reached"""
 URL_ENV, KEY_ENV = "DPCMN_URL", "DPCMN_API_KEY"
 PART_SUFFIXES = (".stl", ".obj", ".ply", ".pcd", ".npy", ".off", ".glb", ".gltf")
+UNITS = ("m", "mm", "cm", "in")  # POST /references' units
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -56,7 +59,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         ) as client:
             return arguments.run(client, arguments)
     except ServiceError as error:
-        return report_error(error, arguments.json)
+        return report_error(in_cli_words(error), arguments.json)
     except OSError as error:  # a file that cannot be read
         return report_error(ServiceError(f"{error.strerror}: {error.filename}"), arguments.json)
 
@@ -136,6 +139,11 @@ def parser() -> argparse.ArgumentParser:
     )
     register.add_argument("--replace", action="store_true", help="replace a part of that name")
     register.add_argument(
+        "--units",
+        choices=UNITS,
+        help="the unit the file's points are in (stored in metres; default: as they are)",
+    )
+    register.add_argument(
         "--no-self-check", dest="self_check", action="store_false", help="skip the self-check"
     )
 
@@ -193,13 +201,20 @@ def run_register(client: Client, arguments: argparse.Namespace) -> int:
         if not parts:
             raise ServiceError(f"no mesh or cloud file ({', '.join(PART_SUFFIXES)}) in {source}")
         references = client.register_many(
-            parts, replace=arguments.replace, self_check=arguments.self_check
+            parts,
+            replace=arguments.replace,
+            self_check=arguments.self_check,
+            units=arguments.units,
         )
     else:
         name = arguments.name or source.stem
         references = [
             client.register(
-                name, source, replace=arguments.replace, self_check=arguments.self_check
+                name,
+                source,
+                replace=arguments.replace,
+                self_check=arguments.self_check,
+                units=arguments.units,
             )
         ]
     if arguments.json:
@@ -298,7 +313,11 @@ def describe_pose(pose: Pose) -> str:
     ]
     lines += [f"  reason: {reason}" for reason in pose.reasons]
     if pose.ambiguous:
-        lines.append(f"  ambiguous: {len(pose.alternatives)} other pose(s) fit alike")
+        parts = sorted({a.label for a in pose.alternatives if a.label})
+        poses = sum(a.label is None for a in pose.alternatives)
+        said = [f"{poses} other pose(s)"] if poses else []
+        said += [f"look-alike part(s) {', '.join(parts)}"] if parts else []
+        lines.append(f"  ambiguous: {' and '.join(said) or 'other poses'} fit alike")
     if pose.points_set_aside:
         lines.append(f"  {pose.points_set_aside} points set aside (support plane, strays)")
     timings = ", ".join(f"{k} {v:.1f}" for k, v in pose.timings_ms.items())
@@ -318,7 +337,27 @@ def describe_reference(reference: Reference) -> str:
         text += f"\n  self-check: {right}/{len(checks)} recognised, worst rotation {worst:.1f} deg"
     if reference.symmetry:
         text += f"\n  symmetry: {reference.symmetry.get('kind')}"
-    return "\n".join([text, *(f"  warning: {warning}" for warning in reference.warnings)])
+    warnings = (f"  warning: {as_flags(warning)}" for warning in reference.warnings)
+    return "\n".join([text, *warnings])
+
+
+def in_cli_words(error: ServiceError) -> ServiceError:
+    """The error with the service's names for a registration's options said as this command
+    line's flags (``as_flags``)."""
+    detail = as_flags(error.detail)
+    if detail == error.detail:
+        return error
+    return type(error)(detail, error.status, error.request_id, error.retry_after)
+
+
+def as_flags(text: str) -> str:
+    """The service's words for a registration's query parameters as ``dpc-mn``'s flags: it says
+    "pass replace=true" and "units=mm", the command line takes ``--replace`` and ``--units mm``
+    (and, once a taken name is said, ``--name``)."""
+    if re.search(r"\bpass \??replace=true\b", text):
+        text = text.replace("pick another name", "pick another --name")
+    text = re.sub(r"\??\breplace=true\b", "--replace", text)
+    return re.sub(r"\??\bunits=(m|mm|cm|in)\b", r"--units \1", text)
 
 
 def say_retry(error: ServiceError, wait_s: float) -> None:

@@ -122,8 +122,10 @@ class Client:
         *,
         replace: bool = False,
         self_check: bool = True,
+        units: str | None = None,
     ) -> Reference:
-        """Register a part from a mesh or cloud file, or from points (sent as float32 NPY)."""
+        """Register a part from a mesh or cloud file, or from points (sent as float32 NPY);
+        ``units`` (``m``, ``mm``, ``cm``, ``in``): the unit they are in, stored in metres."""
         if isinstance(path_or_points, str | Path):
             path = Path(path_or_points)
             file = (path.name, path.read_bytes())
@@ -132,7 +134,7 @@ class Client:
         answer = self._request(
             "POST",
             "/references",
-            data={"name": name},
+            data={"name": name} | ({"units": units} if units else {}),
             files={"file": file},
             params={"replace": _flag(replace), "self_check": _flag(self_check)},
         )
@@ -144,10 +146,12 @@ class Client:
         *,
         replace: bool = False,
         self_check: bool = True,
+        units: str | None = None,
     ) -> list[Reference]:
         """Register several parts in one request, all or none, with one refit of the
         classifier: mesh or cloud files (each named for its file, without the suffix), or
-        ``{name: file or points}``. The answers come in the order given."""
+        ``{name: file or points}``, all in ``units`` (as ``register``). The answers come in
+        the order given."""
         named = parts if isinstance(parts, dict) else {Path(p).stem: p for p in parts}
         files, names = [], []
         for name, source in named.items():
@@ -161,7 +165,8 @@ class Client:
             "/references/batch",
             data={"name": names},
             files=files,
-            params={"replace": _flag(replace), "self_check": _flag(self_check)},
+            params={"replace": _flag(replace), "self_check": _flag(self_check)}
+            | ({"units": units} if units else {}),
         )
         return [Reference.from_answer(item) for item in answer.json()["references"]]
 

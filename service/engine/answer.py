@@ -25,6 +25,7 @@ class AlternativePose:
     rotation: np.ndarray
     translation: np.ndarray
     confidence: float
+    label: str | None = None  # another part's pose: a look-alike's (None: the answer's part)
 
 
 @dataclass
@@ -52,6 +53,7 @@ class Alignment:
     alike: float = 0.0  # the best fit x coverage of another, non-equivalent pose of the part
     size_ratio: float = 1.0  # the observed radius over the part's scale
     points: int = 0  # observed points the answer rests on
+    look_alikes: list[str] = field(default_factory=list)  # parts that fit alike, no view tells
 
 
 @dataclass

@@ -21,6 +21,7 @@ docs/decisions.md, "Glossary".
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -40,10 +41,11 @@ from service.engine.fits import Fit
 from service.engine.frame import Frame
 from service.engine.grid import grid
 from service.engine.icp import Surface
+from service.engine.look_alikes import doubt, relation
 from service.engine.mapping import Mapper
 from service.engine.normalize import has_extent, normalize, radius, subsample
 from service.engine.normals import estimate_normals, mesh_normals, orient_by_views
-from service.engine.principal_axes import flatness
+from service.engine.principal_axes import flatness, one_line, thinness
 from service.engine.projection import DepthImage
 from service.engine.query import Observed, Query, Ranking, Stopwatch
 from service.engine.reference import Reference
@@ -60,7 +62,9 @@ from service.engine.tuning import (
     FLAT,
     INSTANCE_FLOOR,
     KEEP_SHARE,
+    LINE,
     MAX_ALTERNATIVES,
+    PER_PART,
     POOR_FIT,
     RIGHT_EITHER_WAY,
     THIN_PER_SCALE,
@@ -263,6 +267,7 @@ class Engine:
             )
         listed = list(entries.values())
         scales = np.array([entry.reference.scale for entry in listed])
+        alike = relation(entry.reference for entry in listed)
         counts = [len(e.views.radii) for e in listed]
         self._snapshot = Snapshot(
             entries,
@@ -277,10 +282,28 @@ class Engine:
             if listed
             else np.zeros(0, np.intp),
             view_radii=np.concatenate([e.views.radii for e in listed]) if listed else np.zeros(0),
+            look_alikes=alike,
         )
 
     def names(self) -> list[str]:
         return list(self._snapshot.entries)
+
+    def look_alikes(self, name: str) -> tuple[str, ...]:
+        """The references ``name`` looks alike (``service.engine.look_alikes``)."""
+        return self._snapshot.look_alikes.get(name, ())
+
+    def annotate(self, reference: Reference) -> None:
+        """Swap in a reference that differs from the one of its name only in what no query
+        derives anything from (its ``look_alikes``): nothing is refitted."""
+        with self._write_lock:
+            snapshot = self._snapshot
+            entry = snapshot.entries[reference.name]
+            entries = {
+                **snapshot.entries,
+                reference.name: dataclasses.replace(entry, reference=reference),
+            }
+            alike = relation(e.reference for e in entries.values())
+            self._snapshot = dataclasses.replace(snapshot, entries=entries, look_alikes=alike)
 
     def get(self, name: str) -> Reference | None:
         entry = self._snapshot.entries.get(name)
@@ -347,6 +370,7 @@ class Engine:
                 answer, seen = found, reading.points
         if answer.verdict != "no_match":  # 8. How far to trust it.
             self.judge(answer, min_confidence, query, flatness(seen))
+            doubt(answer)  # among look-alikes that fit alike, the label is a guess
         answer.timings_ms = query.clock.total()
         return answer
 
@@ -378,6 +402,8 @@ class Engine:
         """Steps 1-8 on one reading of the observation."""
         if not has_extent(radius(reading.points), float(np.abs(reading.points).max())):
             return self._at_one_place(query, reading.points)
+        if (thin := thinness(reading.points - reading.points.mean(axis=0))) < LINE:
+            return self._on_one_line(query, reading.points, thin)
         observed = self.normalise(query, reading)  # 1
         observed.mapped = self.map(observed.points)  # 2
         query.clock.lap("map")
@@ -485,6 +511,15 @@ class Engine:
         )
         runner_label = None if runner_up is None else snapshot.classifier.labels[runner_up.row]
         alike, alternatives = self._alike(entry, fits)
+        look_alikes = self._look_alike_fits(query, search, fits, winner)
+        parts = [
+            AlternativePose(
+                *snapshot.entries[other].symmetry.canonical(fit.rotation, fit.translation),
+                confidence=0.0,
+                label=other,
+            )
+            for other, fit in look_alikes
+        ]
         query.clock.lap("decide")
         error = alignment_error(observed.scene, entry.point_tree, rotation, translation)
         query.clock.lap("measure")
@@ -498,7 +533,7 @@ class Engine:
             hypothesis=winner.source,
             candidates=search.candidate_fits(fits, ranking.scores),
             ambiguous=bool(alternatives),
-            alternatives=alternatives,
+            alternatives=alternatives + parts,
             fit=winner.fit,
             coverage=winner.coverage,
             runner_up=0.0 if runner_up is None else runner_up.score,
@@ -506,7 +541,51 @@ class Engine:
             alike=alike,
             size_ratio=observed.size / entry.reference.scale,
             points=len(observed.scene),
+            look_alikes=[other for other, _ in look_alikes],
         )
+
+    def _look_alike_fits(
+        self, query: Query, search: Search, fits: list[Fit], winner: Fit
+    ) -> list[tuple[str, Fit]]:
+        """The winner's look-alikes among the allowed parts (``service.engine.look_alikes``)
+        that fit within ``ALIKE`` of its fit x coverage, each at its best pose: one of the same
+        points at the winner's own; another searched as the winner was (its best hypotheses
+        refined, then finished), had the search not verified it."""
+        snapshot = query.snapshot
+        labels = snapshot.classifier.labels
+        allowed = set(query.allowed.tolist())
+        rows = [labels.index(o) for o in snapshot.look_alikes.get(labels[winner.row], ())]
+        rows = [row for row in rows if row in allowed]
+        same = search.entry(winner.row).reference.points_sha256
+        alike = []
+        for row in rows:
+            if search.entry(row).reference.points_sha256 == same:  # one surface: one fit
+                best = dataclasses.replace(winner, row=row)
+            else:
+                best = self._searched_as_winner(query, search, fits, row)
+            if best is not None and best.score >= ALIKE * winner.score:
+                alike.append((labels[row], best))
+        return alike
+
+    def _searched_as_winner(
+        self, query: Query, search: Search, fits: list[Fit], row: int
+    ) -> Fit | None:
+        """A look-alike's best pose, searched and refined as the winner's was (copies: the
+        search's own fits stay as they were)."""
+        mine = [dataclasses.replace(f) for f in fits if f.row == row]
+        if not mine:
+            chosen = [s for s in ("views", "principal-axes", "mapped") if s in query.sources]
+            plan = Plan({row: chosen}, self.settings.refine_best)
+            mine = search.refine(search.verify(search.hypothesise(plan), plan), plan)
+        if not mine:
+            return None
+        mine.sort(key=lambda f: (not f.refined, -f.score))
+        if query.refine:
+            for candidate in mine[:PER_PART]:
+                if not candidate.refined:
+                    search.refine_one(candidate)
+            mine = search.finish(sorted(mine, key=lambda f: -f.score))
+        return max(mine, key=lambda f: f.score)
 
     @staticmethod
     def _alike(entry: Entry, fits: list[Fit]) -> tuple[float, list[AlternativePose]]:
@@ -603,6 +682,13 @@ class Engine:
                 "place: there is no shape to recognise; send the part's points"
             ],
         )
+
+    def _on_one_line(self, query: Query, scene: np.ndarray, thin: float) -> Alignment:
+        """A no-match answer for a reading whose points lie on one line (``tuning.LINE``)."""
+        snapshot = query.snapshot
+        scores = np.zeros(len(snapshot.classifier.labels))
+        reasons = [one_line(len(scene), thin)]
+        return self._unanswered(snapshot, query.allowed, scene, scores, reasons)
 
     # --- a whole frame ----------------------------------------------------------------
 
@@ -803,7 +889,19 @@ class Engine:
                 "alignment_error_normalized": result.alignment_error_normalized,
                 "verdict": result.verdict,
                 "confidence": result.confidence,
+                **(self._runner_up(result, scene, viewpoint) if kind == "full" else {}),
             }
 
         with ThreadPoolExecutor(SELF_CHECK_THREADS, thread_name_prefix="self-check") as pool:
             return list(pool.map(check, renders, poses))
+
+    def _runner_up(self, result: Alignment, scene: np.ndarray, viewpoint) -> dict:
+        """The other part that fitted a render of a new reference best, and how well once the
+        whole search is spent on it alone: its fit x coverage over the answer's. The search's
+        own figure for it may be an unrefined pose's (service.engine.look_alikes)."""
+        other = result.runner_up_label
+        if other is None or result.fit * result.coverage <= 0:
+            return {"runner_up": other, "runner_up_fit": None}
+        alone = self.align(scene, candidates=[other], viewpoint=viewpoint)
+        share = alone.fit * alone.coverage / (result.fit * result.coverage)
+        return {"runner_up": other, "runner_up_fit": share}

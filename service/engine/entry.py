@@ -99,3 +99,5 @@ class Snapshot:
     view_owner: np.ndarray = field(default_factory=lambda: np.zeros(0, np.intp))  # its row
     view_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.intp))
     view_radii: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # each reference's look-alikes (``service.engine.look_alikes.relation``), where it has any
+    look_alikes: dict[str, tuple[str, ...]] = field(default_factory=dict)

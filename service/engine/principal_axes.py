@@ -83,6 +83,22 @@ def flatness(points: np.ndarray) -> float:
     return float(np.sqrt(max(variances[0], 0.0) / max(variances[2], 1e-300)))
 
 
+def thinness(centred: np.ndarray) -> float:
+    """How straight a centred cloud is: its middle principal spread over its largest (0: one
+    line)."""
+    variances = np.linalg.eigvalsh(centred.T @ centred / max(len(centred), 1))
+    return float(np.sqrt(max(variances[1], 0.0) / max(variances[2], 1e-300)))
+
+
+def one_line(count: int, thin: float) -> str:
+    """Why ``count`` points of ``thinness`` ``thin`` (under ``tuning.LINE``) give no pose."""
+    return (
+        f"the {count} points lie on one line (across it they spread {thin:.1e} of their "
+        "length): a line does not fix the turn about itself, so no part can be posed on it; "
+        "send points of the part's surface"
+    )
+
+
 def principal_frame(centred: np.ndarray) -> np.ndarray:
     """Principal axes with each sign chosen so the cloud's third moment along it is positive.
 

@@ -31,6 +31,9 @@ class Reference:
     field: np.ndarray | None = None  # (X, Y, Z) uint16: the point nearest each voxel centre
     field_frame: np.ndarray | None = None  # (4,) float64: voxel (0,0,0)'s centre, voxel edge
     symmetry: dict | None = None  # {"kind": "none" | "revolution" | "discrete", ...}
+    # the parts its registration check could not tell it from: name -> their points_sha256
+    # then (``service.engine.look_alikes``); None: none, or stored before the field existed
+    look_alikes: dict | None = None
 
     @cached_property
     def points_sha256(self) -> str:

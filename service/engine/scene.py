@@ -29,6 +29,7 @@ from service.engine.confidence import Calibration
 from service.engine.entry import Entry
 from service.engine.frame import Frame
 from service.engine.icp import icp
+from service.engine.look_alikes import doubt
 from service.engine.normalize import radius, subsample
 from service.engine.projection import DepthImage
 from service.engine.query import Query, Stopwatch
@@ -428,6 +429,7 @@ class Scan:
         threshold = next(t for t in (self.min_confidence, self.calibration.accept) if t is not None)
         if answer.confidence >= threshold:
             answer.verdict, answer.reasons = "match", []
+            doubt(answer, share=False)  # the chain's confidence, shared among them, is a feature
             return
         answer.verdict = "uncertain" if answer.confidence >= 0.2 else "no_match"
         reasons = [f"the confidence {answer.confidence:.2f} is below the threshold {threshold:.2f}"]
@@ -442,6 +444,7 @@ class Scan:
                 "in view: it may be hidden by others, or not this part"
             )
         answer.reasons = reasons + [r for r in answer.reasons if "threshold" not in r]
+        doubt(answer, share=False)
 
     def answer(
         self,

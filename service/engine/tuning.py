@@ -69,6 +69,8 @@ MAX_ALTERNATIVES = 3
 # precise (ADD-S under 0.02 of the diameter) were it the truth
 RIGHT_EITHER_WAY = 0.02
 FLAT = 0.03  # an observation this flat (smallest over largest principal spread) is one face
+# ... this thin (middle over largest spread), one line: no turn about it can be told
+LINE = 1e-3
 POOR_FIT = 0.8  # an answer whose part holds less of the cloud may be a cloud in other units
 
 # --- Registration: what one camera sees (docs/decisions.md#registration) --------------------------

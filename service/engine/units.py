@@ -48,3 +48,55 @@ def unit_ratio(factor: float) -> tuple[float, str, str] | None:
             if 0.5 * ratio <= factor <= 2 * ratio:
                 return ratio, unit, other
     return None
+
+
+# --- the units a part is registered in --------------------------------------------------------
+
+UNITS = {"m": 1.0, "mm": 0.001, "cm": 0.01, "in": 0.0254}  # metres a unit
+UNIT_WORDS = {"m": "metres", "mm": "millimetres", "cm": "centimetres", "in": "inches"}
+LIKELY_FIRST = ("mm", "cm", "m", "in")  # CAD exports ship millimetres most, inches least
+WORKING_RANGE = (0.005, 2.0)  # radii in metres a depth camera's part has (5 mm to 2 m)
+FAR_OFF = 30.0  # a part this many times larger (or smaller) than every other is doubted
+
+
+def size_warnings(
+    name: str, scale: float, units: str | None, others: dict[str, float]
+) -> list[str]:
+    """A registration's warning when the part's radius ``scale`` (metres, as stored, its points
+    read in ``units``) is outside a camera's working range or ``FAR_OFF`` times every other
+    part's (``others``: name -> scale), naming the unit its points are likely in."""
+    off = _size_doubts(scale, others)
+    if not off:
+        return []
+    given = units or "m"
+    sent = scale / UNITS[given]  # the radius in the numbers the caller sent
+    likely = next(
+        (u for u in LIKELY_FIRST if u != given and not _size_doubts(sent * UNITS[u], others)),
+        None,
+    )
+    read = f" (its points read as {UNIT_WORDS[given]})" if units else ""
+    said = f"{name}'s radius is {scale:.3g} m{read}: {' and '.join(off)}"
+    if likely is None:
+        return [f"{said}; check which unit its points are in (units: m, mm, cm or in)"]
+    return [
+        f"{said}; its points are probably in {UNIT_WORDS[likely]}: register it again with "
+        f"units={likely} (and replace=true), so that it is stored in metres"
+    ]
+
+
+def _size_doubts(scale: float, others: dict[str, float]) -> list[str]:
+    """What is doubtful about a part of radius ``scale`` metres among parts of ``others``."""
+    doubts = []
+    low, high = WORKING_RANGE
+    if not low <= scale <= high:
+        doubts.append("outside a camera's working range (a radius of 5 mm to 2 m)")
+    if others:
+        nearest = min(others, key=lambda other: abs(np.log(scale / others[other])))
+        ratio = scale / others[nearest]
+        if not 1 / FAR_OFF < ratio < FAR_OFF:
+            times = f"{ratio:,.0f} times" if ratio > 1 else f"1/{1 / ratio:,.0f} of"
+            doubts.append(
+                f"{times} the radius of the nearest-sized registered part ({nearest}, "
+                f"{others[nearest]:.3g} m)"
+            )
+    return doubts

@@ -22,6 +22,7 @@ import trimesh
 
 from service import memory
 from service.engine.engine import Engine
+from service.engine.look_alikes import confused
 from service.engine.reference import Reference, points_sha256
 from service.engine.symmetry import Symmetry
 from service.errors import ReferenceExists
@@ -190,6 +191,8 @@ class Catalog:
             checks = None
             if self_check_poses:
                 checks = self.engine.self_check(reference, self_check_poses, part.mesh)
+                if others := confused(part.name, checks):
+                    reference = self.note_look_alikes(part.name, others) or reference
             outcome = CREATED if previous[part.name] is None else REPLACED
             results.append((reference, outcome, checks))
         memory.release_free_heap()
@@ -281,6 +284,26 @@ class Catalog:
                     same[name] = existing
         self._check_can_add([name for name in digests if name not in same], replace)
         return same
+
+    def note_look_alikes(self, name: str, others: list[str]) -> Reference | None:
+        """Store with the reference ``name`` that its registration check could not tell it from
+        ``others`` (``service.engine.look_alikes``, with their points now); the reference as
+        noted, or None when it changed meanwhile (replaced, removed, or another replica's)."""
+        with self._write_lock:
+            reference = self.engine.get(name)
+            if reference is None:
+                return None
+            claims = dict(reference.look_alikes or {})
+            for other in others:
+                if (held := self.engine.get(other)) is not None and other != name:
+                    claims[other] = held.points_sha256
+            noted = reference.with_(look_alikes=claims)
+            checksum = self.store.rewrite(noted, self.model_hash, was=self._held.get(name, ""))
+            if checksum is None:
+                return None
+            self.engine.annotate(noted)
+            self._held[name] = checksum
+        return noted
 
     def remove(self, name: str, commit: Callable[[], None] = lambda: None) -> None:
         """Delete a reference from the store and the engine; ``commit`` as for ``register``.

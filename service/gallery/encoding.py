@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from service.engine.reference import Reference
+from service.engine.reference import DERIVED, Reference
 
 
 class StoreCorrupted(RuntimeError):
@@ -90,8 +90,15 @@ REQUIRED = tuple(  # the fields a Reference cannot be made without
 
 def missing(values: dict[str, Any]) -> tuple[str, ...]:
     """The fields of ``Reference`` that stored values lack, or hold as None (written by an older
-    version, or seeded from a gallery file made before the field existed)."""
-    return tuple(f.name for f in dataclasses.fields(Reference) if values.get(f.name) is None)
+    version, or seeded from a gallery file made before the field existed), among those it
+    cannot be used without: the required ones and those registration derives (``DERIVED``);
+    an optional one (``look_alikes``) is no reason to recompute a reference."""
+    needed = (*REQUIRED, *DERIVED)
+    return tuple(
+        f.name
+        for f in dataclasses.fields(Reference)
+        if f.name in needed and values.get(f.name) is None
+    )
 
 
 def to_reference(values: dict[str, Any]) -> Reference:

@@ -186,7 +186,12 @@ def test_the_region_of_interest_is_all_that_is_searched(server, meshes):
             "max",
         ),
         (
-            {"json": {"points": [[0.0, 0, 1], [1, 0, 1]] * 20, "candidates": ["nothing"]}},
+            {
+                "json": {
+                    "points": [[0.0, 0, 1], [1, 0, 1], [0, 1, 1], [0, 0, 2]] * 10,
+                    "candidates": ["nothing"],
+                }
+            },
             404,
             "nothing",
         ),
@@ -205,7 +210,9 @@ def test_bad_input_is_refused_as_for_align(server, request_kwargs, status, says)
 def test_an_empty_gallery_is_a_409(tmp_path):
     empty = empty_server(tmp_path)
     try:
-        answer = empty.client.post("/detect", json={"points": [[0.0, 0, 1], [1, 0, 1]] * 20})
+        answer = empty.client.post(
+            "/detect", json={"points": [[0.0, 0, 1], [1, 0, 1], [0, 1, 1], [0, 0, 2]] * 10}
+        )
         assert answer.status_code == 409
         assert "register" in answer.json()["detail"]
     finally:

@@ -176,6 +176,7 @@ def alternatives(alignment: Alignment) -> list[AlternativePose]:
             rotation=np.asarray(a.rotation, float).tolist(),
             translation=np.asarray(a.translation, float).tolist(),
             confidence=a.confidence,
+            label=a.label,
         )
         for a in alignment.alternatives
     ]

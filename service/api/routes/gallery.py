@@ -138,7 +138,7 @@ async def import_references(
         )
     if not any(outcome == CREATED for _, outcome, _ in results):
         response.status_code = status.HTTP_200_OK
-    return ImportResponse(references=[answer_of(*result) for result in results])
+    return ImportResponse(references=[answer_of(catalog.engine, *result) for result in results])
 
 
 def _restore(job: Job, catalog: Catalog, copy: backup.Copy, source: str, replace: bool) -> str:

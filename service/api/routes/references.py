@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import PurePath
 from typing import Annotated
 
@@ -11,7 +12,7 @@ from fastapi import APIRouter, Query, Request, Response, status
 from service.api.auth import AdminAccess, ReadAccess
 from service.api.dependencies import CatalogDep, EngineDep, LimiterDep, SettingsDep
 from service.api.limiter import Job
-from service.api.parsers import Upload, read_upload
+from service.api.parsers import Upload, in_metres, read_upload
 from service.api.routes.common import (
     JSON,
     MULTIPART,
@@ -33,11 +34,15 @@ from service.api.schemas import (
     ReferenceRequest,
     ReferenceResponse,
     SelfCheck,
+    Units,
+    UnitsChoice,
 )
 from service.api.uploads import read_form, read_parts
 from service.api.validation import validate_points
 from service.engine.engine import Engine
+from service.engine.look_alikes import confused, same_points, told_from
 from service.engine.reference import Reference
+from service.engine.units import size_warnings
 from service.errors import InvalidPoints, UnknownReference
 from service.gallery.catalog import CREATED, IDENTICAL, Catalog, Part
 from service.settings import Settings
@@ -79,20 +84,23 @@ async def register(
     limiter: LimiterDep,
     replace: Annotated[bool, Query(description="replace a reference of that name")] = False,
     self_check: Annotated[bool, Query(description="align the new reference with itself")] = True,
+    units: Annotated[Units | None, Query(description=UNITS_DESCRIPTION)] = None,
 ) -> ReferenceResponse:
-    """JSON ``{"name", "points"}``, or multipart ``name`` + ``file`` (STL, OBJ, PLY, PCD, NPY)."""
+    """JSON ``{"name", "points"}``, or multipart ``name`` + ``file`` (STL, OBJ, PLY, PCD, NPY);
+    ``units`` as a query parameter, a JSON field or a form field (the body's wins)."""
     if body_kind(request, JSON, MULTIPART) == MULTIPART:
-        form = await read_form(request, ("file",), ("name",), "the mesh or cloud")
-        name = form.value("name")
-        fields, source = ({} if name is None else {"name": name}), form.files["file"]
+        form = await read_form(request, ("file",), ("name", "units"), "the mesh or cloud")
+        fields = {k: v for k in ("name", "units") if (v := form.value(k)) is not None}
+        source = form.files["file"]
     else:
         fields, source = json_object(await request.body()), None
+    units = parse(UnitsChoice, {"units": fields.pop("units", units)}).units
     poses = settings.gallery.self_check_poses if self_check else 0
     reference, outcome, checks = await limiter.write(
-        _register, catalog, settings, fields, source, replace, poses
+        _register, catalog, settings, fields, source, replace, poses, units
     )
     response.status_code = status.HTTP_201_CREATED if outcome == CREATED else status.HTTP_200_OK
-    return answer_of(reference, outcome, checks)
+    return answer_of(catalog.engine, reference, outcome, checks, units)
 
 
 IDENTICAL_MESSAGE = (
@@ -101,15 +109,38 @@ IDENTICAL_MESSAGE = (
 MAX_BATCH = 200  # parts in one POST /references/batch
 
 
-def answer_of(reference: Reference, outcome: str, checks: list[dict] | None) -> ReferenceResponse:
+def answer_of(
+    engine: Engine,
+    reference: Reference,
+    outcome: str,
+    checks: list[dict] | None,
+    units: str | None = None,
+) -> ReferenceResponse:
     """A registration's answer: the reference, its outcome and self-check, the warnings."""
+    alike, named = look_alike_warnings(engine, reference, checks)
     return ReferenceResponse(
-        **_info(reference).model_dump(),
+        **_info(reference, engine.look_alikes(reference.name)).model_dump(),
         self_check=None if checks is None else [SelfCheck.model_validate(c) for c in checks],
-        warnings=warnings(reference, checks),
+        warnings=alike
+        + warnings(reference, checks, told=named)
+        + _size_warnings(engine, reference, units),
+        units=units,
         outcome=outcome,
         message=IDENTICAL_MESSAGE if outcome == IDENTICAL else None,
     )
+
+
+UNITS_DESCRIPTION = (
+    "the unit the points are in: m, mm, cm or in; the reference is stored in metres (its "
+    "points times the unit). Default: stored as sent"
+)
+
+
+def _size_warnings(engine: Engine, reference: Reference, units: str | None) -> list[str]:
+    """A size outside a camera's range, or far from every other part's, naming the unit."""
+    others = {n: engine.get(n) for n in engine.names() if n != reference.name}
+    scales = {n: float(r.scale) for n, r in others.items() if r is not None}
+    return size_warnings(reference.name, float(reference.scale), units, scales)
 
 
 def _register(
@@ -120,8 +151,10 @@ def _register(
     source: tuple[bytes, str | None] | None,
     replace: bool,
     self_check_poses: int,
+    units: str | None = None,
 ) -> tuple[Reference, str, list[dict] | None]:
-    """Validate, read the points, compute and store the reference (in a worker thread)."""
+    """Validate, read the points (stored in metres, from ``units``), compute and store the
+    reference (in a worker thread)."""
     known_fields(fields, ReferenceRequest.model_fields)
     identity = parse(ReferenceIdentity, {k: v for k, v in fields.items() if k != "points"})
     limits = settings.limits
@@ -130,13 +163,14 @@ def _register(
     else:
         upload = read_upload(*source, settings.gallery.reference_points, limits.max_points)
     points = validate_points(upload.points, limits.min_points, limits.max_points)
+    points, mesh = in_metres(points, upload.mesh, units)
     return catalog.register(
         identity.name,
         points,
         replace,
         self_check_poses,
         job.commit,
-        mesh=upload.mesh,
+        mesh=mesh,
         face_index=upload.face_index,
     )
 
@@ -162,6 +196,7 @@ async def register_batch(
     limiter: LimiterDep,
     replace: Annotated[bool, Query(description="replace references of those names")] = False,
     self_check: Annotated[bool, Query(description="align each new reference with itself")] = True,
+    units: Annotated[Units | None, Query(description=UNITS_DESCRIPTION)] = None,
 ) -> ReferenceBatchResponse:
     """Multipart: one ``file`` field a part (STL, OBJ, PLY, PCD, NPY) and, optionally, a ``name``
     field for each, in the same order (else each part is named for its file, without the
@@ -186,12 +221,13 @@ async def register_batch(
         list(zip(names, files, strict=True)),
         replace,
         poses,
+        units,
         budget_s=settings.limits.request_timeout_s * len(files),
     )
     created = any(outcome == CREATED for _, outcome, _ in results)
     response.status_code = status.HTTP_201_CREATED if created else status.HTTP_200_OK
     return ReferenceBatchResponse(
-        references=[answer_of(*result) for result in results],
+        references=[answer_of(catalog.engine, *result, units) for result in results],
         refits=catalog.engine.refits - refits,
     )
 
@@ -203,6 +239,7 @@ def _register_batch(
     uploads: list[tuple[str, tuple[bytes, str | None]]],
     replace: bool,
     self_check_poses: int,
+    units: str | None = None,
 ) -> list[tuple[Reference, str, list[dict] | None]]:
     limits = settings.limits
     parts = []
@@ -212,7 +249,8 @@ def _register_batch(
             points = validate_points(upload.points, limits.min_points, limits.max_points)
         except InvalidPoints as error:
             raise InvalidPoints(f"part '{name}' ({source[1]}): {error}") from None
-        parts.append(Part(name, points, upload.mesh, upload.face_index))
+        points, mesh = in_metres(points, upload.mesh, units)
+        parts.append(Part(name, points, mesh, upload.face_index))
     return catalog.register_many(parts, replace, self_check_poses, job.commit)
 
 
@@ -225,7 +263,9 @@ def _register_batch(
 )
 async def list_references(engine: EngineDep) -> ReferenceList:
     references = (engine.get(name) for name in sorted(engine.names()))
-    return ReferenceList(references=[_info(r) for r in references if r is not None])
+    return ReferenceList(
+        references=[_info(r, engine.look_alikes(r.name)) for r in references if r is not None]
+    )
 
 
 @router.get(
@@ -236,7 +276,7 @@ async def list_references(engine: EngineDep) -> ReferenceList:
     dependencies=[ReadAccess],
 )
 async def describe(name: str, engine: EngineDep) -> ReferenceInfo:
-    return _info(_known(engine, name))
+    return _info(_known(engine, name), engine.look_alikes(name))
 
 
 @router.get(
@@ -295,23 +335,59 @@ def _known(engine: Engine, name: str) -> Reference:
     return reference
 
 
-def _info(reference: Reference) -> ReferenceInfo:
+def _info(reference: Reference, look_alikes: Iterable[str] = ()) -> ReferenceInfo:
     return ReferenceInfo(
         name=reference.name,
         num_points=len(reference.points),
         scale=float(reference.scale),
         points_sha256=reference.points_sha256,
         symmetry=reference.symmetry or {"kind": "none"},
+        look_alikes=list(look_alikes),
     )
 
 
-def warnings(reference: Reference, checks: list[dict] | None) -> list[str]:
-    """What the registration check found that an operator should know."""
+def look_alike_warnings(
+    engine: Engine, reference: Reference, checks: list[dict] | None
+) -> tuple[list[str], set[str]]:
+    """What an operator should know of the registered parts the new one looks alike
+    (``service.engine.look_alikes``): the same points, or a check that could not tell them
+    apart; and which parts that names."""
+    name = reference.name
+    others = [r for n in engine.names() if n != name and (r := engine.get(n)) is not None]
+    said, named = [], set()
+    if same := same_points(reference, others):
+        named.update(same)
+        said.append(
+            f"{name}'s points are identical to those of {' and '.join(same)} (the same "
+            "points_sha256): no view tells them apart, so /align answers ambiguous among them "
+            "(their poses in alternatives, never a match); delete the duplicate, or send "
+            "candidates naming the part the cell expects"
+        )
+    for other in confused(name, checks):
+        if other in named:
+            continue
+        named.add(other)
+        renders = [c for c in checks or [] if told_from(name, c) == other]
+        full = " (the full cloud among them)" if any(c["render"] == "full" for c in renders) else ""
+        said.append(
+            f"the registration check could not tell {name} from {other}: {len(renders)} of "
+            f"{len(checks or [])} renders{full} were answered as {other}, or {other} fitted them "
+            f"alike. /align answers ambiguous where {other} fits as well (never a match); send "
+            "candidates naming the part the cell expects where you can"
+        )
+    return said, named
+
+
+def warnings(
+    reference: Reference, checks: list[dict] | None, told: set[str] | None = None
+) -> list[str]:
+    """What the registration check found that an operator should know (of the parts in
+    ``told``, said already, nothing more)."""
     said = []
     if checks:
         confused: dict[str, int] = {}
         for check in checks:
-            if not check["label_ok"]:
+            if not check["label_ok"] and check["label"] not in (told or set()):
                 confused[check["label"]] = confused.get(check["label"], 0) + 1
         for other, count in confused.items():
             said.append(

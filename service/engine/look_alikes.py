@@ -1,0 +1,105 @@
+"""Look-alike parts: registered references that an observation cannot tell apart.
+
+Two references look alike when their points are the same (one ``points_sha256``: the same
+part registered under two names), or when the registration check of one could not tell it
+from the other: its full render, or half its renders, answered as the other part, or with the
+other fitting alike. That claim
+is stored with the reference that made it (``Reference.look_alikes``), naming the other
+part's ``points_sha256`` then, so it lapses once that part is replaced by other points; the
+relation is symmetric, so both descriptions list it.
+
+``/align`` (``Engine.decide``) compares the winner with its look-alikes: one that fits within
+``tuning.ALIKE`` of the winner's fit x coverage makes the label a guess among them, so the
+answer is ``ambiguous``, the look-alikes' poses are its alternatives (with their labels), its
+confidence is shared among them and the verdict is no "match" (``doubt``).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Iterable
+
+from service.engine.answer import Alignment
+from service.engine.reference import Reference
+from service.engine.tuning import ALIKE
+
+
+def relation(references: Iterable[Reference]) -> dict[str, tuple[str, ...]]:
+    """Each reference's look-alikes among ``references`` (only those that have any)."""
+    references = list(references)
+    sha = {r.name: r.points_sha256 for r in references}
+    pairs: set[tuple[str, str]] = set()
+    same: dict[str, list[str]] = defaultdict(list)
+    for reference in references:
+        same[sha[reference.name]].append(reference.name)
+    for names in same.values():
+        pairs.update((a, b) for a in names for b in names if a != b)
+    for reference in references:
+        for other, then in (reference.look_alikes or {}).items():
+            if sha.get(other) != then:  # replaced by other points (or gone): it lapsed
+                continue
+            for alike in same[then]:  # and every part of those points
+                if alike != reference.name:
+                    pairs.update({(reference.name, alike), (alike, reference.name)})
+    alike: dict[str, list[str]] = defaultdict(list)
+    for a, b in sorted(pairs):
+        alike[a].append(b)
+    return {name: tuple(others) for name, others in alike.items()}
+
+
+def confused(name: str, checks: list[dict] | None) -> list[str]:
+    """The parts a registration check could not tell ``name`` from: in its full render, or in
+    half its renders or more, answered as one, or one fitting alike (``tuning.ALIKE``)."""
+    if not checks:
+        return []
+    said: dict[str, int] = defaultdict(int)
+    full = set()
+    for check in checks:
+        other = told_from(name, check)
+        if other is not None:
+            said[other] += 1
+            if check["render"] == "full":
+                full.add(other)
+    return sorted(
+        other for other, count in said.items() if other in full or 2 * count >= len(checks)
+    )
+
+
+def told_from(name: str, check: dict) -> str | None:
+    """The part one render of ``name`` could not be told from, if any."""
+    if check["label"] != name:
+        return check["label"]
+    alike = (check.get("runner_up_fit") or 0.0) >= ALIKE
+    return check.get("runner_up") if alike else None
+
+
+def same_points(reference: Reference, others: Iterable[Reference]) -> list[str]:
+    """The other references that hold exactly ``reference``'s points."""
+    return sorted(
+        o.name
+        for o in others
+        if o.name != reference.name and o.points_sha256 == reference.points_sha256
+    )
+
+
+def doubt(answer: Alignment, share: bool = True) -> None:
+    """An answer whose part's look-alikes fit alike (``answer.look_alikes``): ambiguous, never
+    a "match", a reason naming them, and (with ``share``) its confidence shared among them."""
+    if not answer.look_alikes:
+        return
+    answer.ambiguous = True
+    if share and answer.confidence is not None:
+        answer.confidence /= 1 + len(answer.look_alikes)
+        for alternative in answer.alternatives:
+            alternative.confidence = answer.confidence
+    if answer.verdict == "match":
+        answer.verdict = "uncertain"
+    others = ", ".join(answer.look_alikes)
+    reason = (
+        f"{answer.label} and its look-alike{'s' * (len(answer.look_alikes) > 1)} {others} fit "
+        "alike (see alternatives, with their labels): no view tells them apart; send "
+        "candidates naming the part the cell expects, or delete a duplicate registration"
+    )
+    said_again = tuple(f"{other} fits almost as well" for other in answer.look_alikes)
+    kept = [r for r in answer.reasons if not r.startswith(said_again) and r != reason]
+    answer.reasons = [*kept, reason]
