@@ -6,10 +6,12 @@ POST /points?pixels=true giving each point's pixel, the indices /detect answers.
 from __future__ import annotations
 
 import io
+import re
 
 import numpy as np
 import pytest
 import trimesh
+from PIL import Image
 
 from tests.conftest import empty_server
 from tests.frames import resting, shoot, spin, table
@@ -45,6 +47,14 @@ def shot():
     return shot
 
 
+@pytest.fixture(scope="module")
+def detected(server, shot) -> dict:
+    """The frame's /detect answer over HTTP, as a script would get it."""
+    answer = server.client.post("/detect", files={"file": ("frame.pcd", shot.pcd())})
+    assert answer.status_code == 200, answer.text
+    return answer.json()
+
+
 def frame_points(server, files, data=None, pixels=True):
     answer = server.client.post(
         "/points", files=files, data=data or {}, params={"pixels": str(pixels).lower()}
@@ -53,7 +63,7 @@ def frame_points(server, files, data=None, pixels=True):
     return answer
 
 
-def test_points_give_an_organized_frame_s_pixels_as_detect_counts_them(server, shot):
+def test_points_give_an_organized_frame_s_pixels_as_detect_counts_them(server, shot, detected):
     height, width = shot.shows.shape
     valid = np.flatnonzero(np.isfinite(shot.points.reshape(-1, 3)).all(axis=1))
     answer = frame_points(server, {"file": ("frame.pcd", shot.pcd())})
@@ -74,9 +84,7 @@ def test_points_give_an_organized_frame_s_pixels_as_detect_counts_them(server, s
     depth_pixels = np.frombuffer(from_depth.content[12 * count :], "<u4")
     assert np.array_equal(depth_pixels, valid) and from_depth.headers["X-Viewpoint"] == "0,0,0"
 
-    detected = server.client.post("/detect", files={"file": ("frame.pcd", shot.pcd())})
-    assert detected.status_code == 200, detected.text
-    claimed = np.concatenate([d["indices"] for d in detected.json()["detections"]])
+    claimed = np.concatenate([d["indices"] for d in detected["detections"]])
     assert len(claimed) and np.isin(claimed, pixels).all()  # every claim is a point drawn
 
 
@@ -87,3 +95,75 @@ def test_an_unorganized_cloud_has_no_pixels(server, shot):
     np.save(buffer, cloud)
     answer = frame_points(server, {"file": ("cloud.npy", buffer.getvalue())})
     assert "X-Shape" not in answer.headers and len(answer.content) == 12 * len(cloud)
+
+
+# the console's verdict colours (console.css, frame.js), as a screenshot shows them
+VERDICT_RGB = {"match": (0x2F, 0xB3, 0x66), "uncertain": (0xE0, 0xA5, 0x26)}
+
+
+def coloured(png: bytes, verdict: str) -> int:
+    """Pixels of a verdict's reference colour in a screenshot; a claimed point's tint, nearer
+    the frame's grey, is not counted."""
+    pixels = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).reshape(-1, 3).astype(int)
+    return int((np.abs(pixels - VERDICT_RGB[verdict]).max(axis=1) <= 12).sum())
+
+
+def chip_rgb(item) -> tuple[int, ...]:
+    """A listed detection's verdict chip's background, as the browser paints it."""
+    style = item.locator(".chip").evaluate("(chip) => getComputedStyle(chip).backgroundColor")
+    return tuple(int(v) for v in re.findall(r"\d+", style)[:3])
+
+
+def test_a_dropped_frame_is_detected_listed_and_drawn(server, shot, detected, browser):  # noqa: F811
+    tab = Page(browser, server.url)
+    page = tab.page
+    page.wait_for_selector("body[data-state=ready]", timeout=30_000)
+    tab.drop("detect-drop", "frame.pcd", shot.pcd(compressed=True))
+    page.wait_for_selector("#view[data-drawn=detection]", timeout=60_000)
+
+    (expected,) = detected["detections"]
+    assert expected["label"] == "box-a" and expected["verdict"] == "match", expected
+    (item,) = page.locator("#detections li.detection").all()
+    assert item.get_attribute("data-label") == "box-a"
+    assert item.get_attribute("data-verdict") == "match"
+    assert chip_rgb(item) == VERDICT_RGB["match"]
+    text = item.inner_text()
+    assert text.startswith("MATCH") and "confidence" in text
+    claimed = int(re.search(r"(\d+) points", text).group(1))
+    assert claimed == expected["num_points"]
+    # the claimed pixels placed on the frame's points: the centre of those very pixels
+    centre = np.array(item.get_attribute("data-centre").split(","), float)
+    pixels = shot.points.reshape(-1, 3)[expected["indices"]]
+    assert np.abs(centre - pixels.mean(axis=0)).max() < 1e-5, centre
+    assert (shot.shows.reshape(-1)[expected["indices"]] == 0).mean() > 0.9  # the box's pixels
+
+    view = page.locator("#view")
+    valid = int(np.isfinite(shot.points[..., 0]).sum())
+    assert view.get_attribute("data-frame") == view.get_attribute("data-drawn-points") == str(valid)
+    assert int(view.get_attribute("data-tinted")) == claimed > 50
+    reference = server.client.get("/references/box-a").json()["num_points"]
+    assert view.get_attribute("data-references") == str(reference)
+    drawn = coloured(view.screenshot(), "match")
+    assert drawn > 100, drawn  # the reference at its pose, in the match's green
+
+    item.click()  # picks it out: listed as selected, its pose's details shown, drawn larger
+    assert view.get_attribute("data-selected") == "0"
+    assert "selected" in item.get_attribute("class") and "translation" in item.inner_text()
+    assert coloured(view.screenshot(), "match") > drawn
+
+    # a confidence no detection reaches: the same box answered uncertain, drawn in amber
+    doubted = server.client.post(
+        "/detect", files={"file": ("frame.pcd", shot.pcd())}, data={"min_confidence": "1"}
+    )
+    (expected,) = doubted.json()["detections"]
+    assert expected["verdict"] == "uncertain" and expected["reasons"], doubted.text
+    page.fill("#min-confidence", "1")
+    tab.drop("detect-drop", "frame.pcd", shot.pcd(compressed=True))
+    page.wait_for_selector("#detections li.detection[data-verdict=uncertain]", timeout=60_000)
+    (item,) = page.locator("#detections li.detection").all()
+    text = item.inner_text()
+    assert text.startswith("UNCERTAIN") and all(r in text for r in expected["reasons"]), text
+    assert chip_rgb(item) == VERDICT_RGB["uncertain"]
+    picture = view.screenshot()
+    assert coloured(picture, "uncertain") > 100 and coloured(picture, "match") == 0
+    assert tab.errors == []
