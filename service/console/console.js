@@ -1,13 +1,17 @@
 // The console: the gallery, registering by dropping a file, aligning a dropped file (or one of
 // the service's recent alignments) and drawing the observed points with the reference at the
-// answered pose. Every call goes through the public API (api.js), as any client's would.
+// answered pose, and detecting every part in a dropped frame. Every call goes through the
+// public API (api.js), as any client's would.
 //
 // A dropped cloud goes to POST /points, so that the console draws exactly the points the
 // service reads from the file, and as it is to POST /align (a depth image with its camera: the
 // service takes the camera, [0, 0, 0], as the viewpoint unless one is typed in). A replayed
-// alignment's points go back to POST /align as raw float32.
+// alignment's points go back to POST /align as raw float32. A dropped frame goes to
+// POST /points?pixels=true (its points, and for an organized frame each one's pixel: /detect's
+// indices are pixels there) and as it is to POST /detect.
 
 import * as api from "./api.js";
+import { claims, frameCloud, radiusOf, readFrame, VERDICT_COLOURS } from "./frame.js";
 import { Thumbnails, View } from "./view.js";
 
 const OBSERVED = 0xff8c1a;
@@ -20,6 +24,7 @@ const view = new View($("view"));
 const thumbnails = new Thumbnails();
 const referencePoints = new Map(); // name -> Float32Array, fetched once
 let health = null;
+let repaintFrame = null; // the drawn frame's paint(k): its colours with detection k picked out
 
 // A DOM element: el("td", {class: "num"}, "1.5"); strings become text, never HTML.
 function el(tag, attributes = {}, ...children) {
@@ -142,6 +147,7 @@ async function selectReference(reference, selfCheck = null) {
   for (const card of $("gallery").children) card.classList.toggle("selected", card.dataset.name === reference.name);
   const points = await pointsOf(reference.name);
   view.show([{ points, color: REFERENCE }]);
+  $("stage").dataset.mode = "align";
   view.element.dataset.drawn = "reference";
   const checks = el("div", {});
   const run = el("button", { onclick: () => runSelfCheck(reference.name, checks) }, "run the self-check");
@@ -284,6 +290,7 @@ async function showAlignment(points, viewpoint, answer, source, again = null) {
     ],
     { viewpoint, axesAt: answer.transform },
   );
+  $("stage").dataset.mode = "align";
   Object.assign(view.element.dataset, {
     drawn: "alignment",
     observed: points.length / 3,
@@ -375,6 +382,140 @@ async function alignRandomPose(name) {
   await alignPoints(randomPose(await pointsOf(name)), null, `${name} in a random pose`);
 }
 
+// Detecting in a frame
+
+// The frame's points as the service reads them and, for an organized frame, each one's pixel.
+async function framePoints(file) {
+  return readFrame(await api.call("POST", "points", { body: cloudForm(file), params: { pixels: "true" } }));
+}
+
+function detectOptions() {
+  return {
+    ...alignOptions(typedViewpoint()),
+    max_instances: $("max-instances").value,
+    roi: $("roi").value.replace(/\s+/g, ""),
+  };
+}
+
+async function detectFile(file) {
+  const frame = await framePoints(file);
+  // the viewpoint /detect takes: the one typed in, else the file's, else the origin
+  const viewpoint = typedViewpoint() ?? frame.viewpoint ?? [0, 0, 0];
+  const unclaimed = new Int16Array(frame.points.length / 3).fill(-1);
+  view.show([frameCloud(frame, unclaimed, [], viewpoint).cloud], { viewpoint });
+  $("stage").dataset.mode = "detect";
+  view.element.dataset.drawn = "frame";
+  say(`${file.name}: ${frame.points.length / 3} points; detecting…`);
+  const form = cloudForm(file);
+  for (const [name, value] of Object.entries(detectOptions())) {
+    for (const item of [].concat(value)) if (item !== "") form.append(name, item);
+  }
+  const answer = await api.json("POST", "detect", { body: form });
+  await showDetections(frame, viewpoint, answer, file.name);
+}
+
+async function showDetections(frame, viewpoint, answer, source) {
+  const { detections } = answer;
+  const { owner, centres, unplaced } = claims(frame, detections);
+  const { cloud, paint, drawn, tinted } = frameCloud(frame, owner, detections, viewpoint);
+  repaintFrame = paint;
+  const references = await Promise.all(detections.map((detection) => pointsOf(detection.label)));
+  const placed = detections.map((detection, k) => {
+    const radius = radiusOf(references[k]);
+    return {
+      points: references[k],
+      color: VERDICT_COLOURS[detection.verdict],
+      transform: detection.transform,
+      pointSize: (2.2 * radius) / Math.sqrt(references[k].length / 3), // ~ half their spacing
+      ahead: 0.25 * radius, // over the claimed points, not through the part to its far side
+      tag: k,
+    };
+  });
+  view.show([cloud, ...placed], { viewpoint, fit: placed });
+  $("stage").dataset.mode = "detect";
+  Object.assign(view.element.dataset, {
+    drawn: "detection",
+    frame: frame.points.length / 3,
+    drawnPoints: drawn,
+    tinted,
+    detections: detections.length,
+    references: references.reduce((sum, points) => sum + points.length / 3, 0),
+    selected: "",
+  });
+  showDetectionList(answer, centres, { count: frame.points.length / 3, drawn, source, shape: frame.shape });
+  const found = detections.map((d) => `${d.label} (${d.verdict.replace("_", " ")})`).join(", ");
+  const warning = unplaced ? `; ${unplaced} claimed indices are not among the frame's points` : "";
+  say(`${source}: ${detections.length ? found : "no registered part found"}${warning}`, unplaced > 0);
+}
+
+function showDetectionList(answer, centres, { count, drawn, source, shape }) {
+  const items = answer.detections.map((detection, k) => {
+    const confidence =
+      detection.confidence === null || detection.confidence === undefined
+        ? "confidence not estimated"
+        : `confidence ${(100 * detection.confidence).toFixed(0)} %`;
+    const centre = centres[k];
+    const item = el(
+      "li",
+      {
+        class: "detection",
+        "data-index": k,
+        "data-label": detection.label,
+        "data-verdict": detection.verdict,
+        "data-centre": centre ? centre.join(",") : "",
+        onclick: () => selectDetection(k),
+      },
+      el("span", { class: `chip ${detection.verdict}` }, detection.verdict.replace("_", " ").toUpperCase()),
+      el("span", { class: "label" }, detection.label),
+      el("div", { class: "muted" }, `${confidence} · ${detection.num_points} points`),
+      detection.reasons.length
+        ? el("ul", { class: "reasons" }, ...detection.reasons.map((reason) => el("li", {}, reason)))
+        : null,
+      el(
+        "div",
+        { class: "more" },
+        table([
+          ["translation", detection.translation.map((v) => number(v, 4)).join(", ")],
+          ["its points' centre", centre ? centre.map((v) => number(v, 4)).join(", ") : "—"],
+          ["alignment error", number(detection.alignment_error, 3)],
+          ["… of the scale", number(detection.alignment_error_normalized, 3)],
+          ["symmetry", detection.symmetry?.kind ?? "—"],
+          ["ambiguous", detection.ambiguous ? `yes: ${detection.alternatives.length} other pose(s)` : "no"],
+        ]),
+      ),
+    );
+    return item;
+  });
+  const total = answer.timings_ms.total;
+  $("result").replaceChildren(...present([
+    el("div", { class: "big" }, `${answer.detections.length} detection(s)`),
+    table([
+      ["frame", shape ? `${shape[1]} × ${shape[0]} pixels` : "a cloud without a grid"],
+      ["points", count],
+      ["drawn", drawn < count ? `${drawn} (a sample)` : drawn],
+      ["supports set aside", answer.supports.length],
+      ["unexplained", answer.unexplained],
+      ["total", total === undefined ? "—" : `${total.toFixed(1)} ms`],
+      ["from", source],
+    ]),
+    answer.detections.length
+      ? el("ol", { id: "detections" }, ...items)
+      : el("p", { id: "detections", class: "muted" }, "no registered part in the frame"),
+    el("p", { class: "muted" }, "only a MATCH is safe to act on; click one to pick it out"),
+  ]));
+}
+
+// Detection k picked out in the list and the view (picked again: none).
+function selectDetection(k) {
+  const picked = view.element.dataset.selected === String(k) ? null : k;
+  for (const item of $("detections").children) {
+    item.classList.toggle("selected", item.dataset.index === String(picked));
+  }
+  view.repaint("frame", repaintFrame(picked));
+  view.highlight(picked);
+  view.element.dataset.selected = picked ?? "";
+}
+
 // Recent alignments (the service's ring buffer)
 
 async function refreshRecent() {
@@ -451,6 +592,7 @@ async function start() {
   for (const event of ["dragover", "drop"]) window.addEventListener(event, (e) => e.preventDefault());
   dropZone($("register-drop"), $("register-file"), register);
   dropZone($("align-drop"), $("align-file"), alignFile);
+  dropZone($("detect-drop"), $("detect-file"), detectFile);
   $("gallery-filter").addEventListener("input", filterGallery);
   $("api-key").value = api.apiKey();
   $("key-form").addEventListener("submit", (event) => {

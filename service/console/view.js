@@ -1,20 +1,55 @@
 // The 3-D view (three.js): clouds as points, orbitable; and the gallery's thumbnails, drawn by
-// one offscreen renderer. A cloud is {points: Float32Array of x y z, color, transform?, size?},
-// with transform the answer's 4x4 row-major [[R, t], [0, 0, 0, 1]] (scene = R @ model + t) and
-// size its points' size relative to the others'.
+// one offscreen renderer. A cloud is {points: Float32Array of x y z, color, transform?, size?,
+// pointSize?, ahead?, colors?, tag?, name?}, with transform the answer's 4x4 row-major
+// [[R, t], [0, 0, 0, 1]] (scene = R @ model + t), size its points' size relative to the
+// others' (pointSize: in the cloud's units instead), ahead how far (in the cloud's units)
+// towards the eye its points are drawn (so that they win over others' on the same surface),
+// colors r g b for each point in place of color (components from rgb()), tag what highlight()
+// picks it by, name what repaint() finds it by.
 
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 
 const BACKGROUND = 0x0f1114;
 
-function pointsObject({ points, color, transform, size: relative = 1 }, size) {
+// A colour's components as vertex colours take them (three.js's linear working space).
+export function rgb(hex) {
+  const { r, g, b } = new THREE.Color(hex);
+  return [r, g, b];
+}
+
+// base: the points' size, as PointsMaterial takes it (the view's height at distance 1 is 2)
+function pointsObject({ points, color, colors, transform, tag, name, pointSize, ahead, size: relative = 1 }, base, fov) {
+  const size = pointSize ? pointSize / Math.tan(THREE.MathUtils.degToRad(fov / 2)) : base * relative;
   const geometry = new THREE.BufferGeometry();
   geometry.setAttribute("position", new THREE.BufferAttribute(points, 3));
-  const material = new THREE.PointsMaterial({ color, size: size * relative, sizeAttenuation: true });
+  if (colors) geometry.setAttribute("color", new THREE.BufferAttribute(colors, 3));
+  const material = new THREE.PointsMaterial({
+    color: colors ? 0xffffff : color,
+    vertexColors: Boolean(colors),
+    size,
+    sizeAttenuation: true,
+  });
+  if (ahead) drawAhead(material, ahead);
   const object = new THREE.Points(geometry, material);
+  object.userData = { tag, size };
+  if (name) object.name = name;
   if (transform) placeAt(object, transform);
   return object;
+}
+
+// The material's points moved ahead (world units) along the eye's rays: where they are.
+function drawAhead(material, ahead) {
+  material.onBeforeCompile = (shader) => {
+    shader.uniforms.ahead = { value: ahead };
+    shader.vertexShader = `uniform float ahead;\n${shader.vertexShader}`.replace(
+      "#include <project_vertex>",
+      `#include <project_vertex>
+      mvPosition.xyz *= max(0.0, 1.0 - ahead / length(mvPosition.xyz));
+      gl_Position = projectionMatrix * mvPosition;`,
+    );
+  };
+  material.customProgramCacheKey = () => "ahead";
 }
 
 function placeAt(object, transform) {
@@ -84,20 +119,64 @@ export class View {
     this.resize();
   }
 
-  // Draw the clouds, replacing what was drawn; axes (of the model frame) at a transform.
-  show(clouds, { viewpoint = null, axesAt = null } = {}) {
+  // Draw the clouds, replacing what was drawn, looking at all of them or at those in fit (the
+  // rest may lie outside the view); axes (of the model frame) at a transform.
+  show(clouds, { viewpoint = null, axesAt = null, fit = null } = {}) {
     dispose(this.group);
-    const sphere = bounds(clouds);
+    const sphere = bounds(fit?.length ? fit : clouds);
+    this.axesLength = sphere.radius * 0.4;
     const size = sphere.radius * 0.012;
-    for (const cloud of clouds) this.group.add(pointsObject(cloud, size));
-    if (axesAt) {
-      const axes = new THREE.AxesHelper(sphere.radius * 0.4);
-      placeAt(axes, axesAt);
-      this.group.add(axes);
-    }
+    for (const cloud of clouds) this.group.add(pointsObject(cloud, size, this.camera.fov));
+    this.placeAxes(axesAt);
     const { centre } = frame(this.camera, sphere, viewpoint);
     this.controls.target.copy(centre);
     this.controls.update();
+    this.render();
+  }
+
+  placeAxes(transform, length = this.axesLength) {
+    for (const child of this.group.children.filter((c) => c.userData.axes)) {
+      this.group.remove(child);
+      child.dispose();
+    }
+    if (!transform) return;
+    const axes = new THREE.AxesHelper(length);
+    axes.userData = { axes: true };
+    placeAt(axes, transform);
+    this.group.add(axes);
+  }
+
+  // New colours (as many as before) for the cloud named name.
+  repaint(name, colors) {
+    const attribute = this.group.getObjectByName(name)?.geometry.getAttribute("color");
+    if (!attribute) return;
+    attribute.array.set(colors);
+    attribute.needsUpdate = true;
+    this.render();
+  }
+
+  // The cloud tagged tag drawn larger, with its model frame's axes at its transform, and the
+  // other tagged ones faint (tag null: all as drawn, no axes).
+  highlight(tag) {
+    let picked = null;
+    for (const child of this.group.children) {
+      const { tag: own, size } = child.userData;
+      if (own === undefined) continue;
+      const faint = tag !== null && own !== tag;
+      if (own === tag) picked = child;
+      child.material.size = own === tag ? size * 1.3 : size;
+      child.material.transparent = faint;
+      child.material.opacity = faint ? 0.25 : 1;
+      child.material.needsUpdate = true;
+    }
+    if (picked) {
+      picked.geometry.computeBoundingSphere();
+      const transform = picked.matrix.toArray(); // column-major
+      const rows = [0, 1, 2, 3].map((r) => [0, 1, 2, 3].map((c) => transform[4 * c + r]));
+      this.placeAxes(rows, picked.geometry.boundingSphere.radius * 1.3);
+    } else {
+      this.placeAxes(null);
+    }
     this.render();
   }
 
@@ -127,7 +206,7 @@ export class Thumbnails {
   // Render one cloud and copy the picture onto a 2-D canvas.
   draw(cloud, canvas) {
     const sphere = bounds([cloud]);
-    const object = pointsObject(cloud, sphere.radius * 0.03);
+    const object = pointsObject(cloud, sphere.radius * 0.03, this.camera.fov);
     this.scene.add(object);
     frame(this.camera, sphere, null);
     this.renderer.render(this.scene, this.camera);
