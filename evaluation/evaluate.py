@@ -50,6 +50,7 @@ import numpy as np
 from tqdm import tqdm
 
 from evaluation.cases import ANSWER_FAMILIES, Case, make_cases, object_scale
+from evaluation.latency import latency_stats
 from evaluation.metrics import ADD_S_POINTS, diameter
 from evaluation.records import NO_ANSWER, Answer, Truth, case_record
 from service.engine.engine import Engine
@@ -396,13 +397,14 @@ def http_latency(
                     if answer.status_code != 200:
                         raise RuntimeError(f"/align answered {answer.status_code}: {answer.text}")
                     right += answer.json()["label"] == case.object_name
+    stats = latency_stats(latencies, ("median_ms", "p95_ms"))
     return {
         "cases": len(cases),
         "references": len(references),
         "accuracy": right / len(cases),
         "latency_ms": latencies,
-        "latency_ms_median": float(np.median(latencies)),
-        "latency_ms_p95": float(np.percentile(latencies, 95)),
+        "latency_ms_median": stats["median_ms"],
+        "latency_ms_p95": stats["p95_ms"],
     }
 
 
