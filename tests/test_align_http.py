@@ -1,6 +1,7 @@
-"""``benchmarks/align_http.py``: its clouds and padding references come from the shipped gallery
-(no pybullet), and a tiny run against a real ``python -m service`` works with the runtime
-packages alone. Only what the run produces is checked, never how long anything took."""
+"""``benchmarks.align_http``: its clouds and padding references come from the shipped gallery
+(no pybullet), and a tiny run of ``python -m benchmarks.align_http`` against a real
+``python -m service`` works with the runtime packages alone. Only what the run produces is
+checked, never how long anything took."""
 
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from benchmarks import align_http
+from benchmarks.align_http.clouds import CLOUD_POINTS, make_clouds, point_spacing
+from benchmarks.align_http.padding import padding_points, padding_references
 from service.engine.engine import Engine
 from service.engine.mapping import Mapper
 from service.gallery.gallery_file import load_gallery
@@ -34,13 +36,13 @@ def shipped():
 
 def test_clouds_are_resampled_references_in_the_stated_pose(shipped):
     references = shipped[:2]
-    clouds = align_http.make_clouds(references, 2, seed=3)
+    clouds = make_clouds(references, 2, seed=3)
     assert [c.label for c in clouds] == [r.name for r in references] * 2  # interleaved
-    again = align_http.make_clouds(references, 2, seed=3)
+    again = make_clouds(references, 2, seed=3)
     assert all(a.raw_body == b.raw_body for a, b in zip(clouds, again, strict=True))
     for cloud in clouds:
         reference = next(r for r in references if r.name == cloud.label)
-        assert cloud.points.shape == (align_http.CLOUD_POINTS, 3)
+        assert cloud.points.shape == (CLOUD_POINTS, 3)
         raw = np.frombuffer(cloud.raw_body, "<f4").reshape(-1, 3)
         assert np.array_equal(raw, cloud.points)
         sent = np.array(json.loads(cloud.json_body)["points"])
@@ -48,7 +50,7 @@ def test_clouds_are_resampled_references_in_the_stated_pose(shipped):
         # back in the model frame: on the reference's surface, but none a registered point
         model = (cloud.points.astype(np.float64) - cloud.translation) @ cloud.rotation
         distances, _ = cKDTree(reference.points).query(model)
-        spacing = align_http.point_spacing(reference.points)
+        spacing = point_spacing(reference.points)
         assert distances.min() > 0
         assert np.median(distances) < spacing
 
@@ -60,14 +62,14 @@ def test_padding_references_are_new_shapes_computed_once_then_cached(shipped, tm
         radii = np.sort(np.linalg.norm(points - points.mean(axis=0), axis=1))
         return radii / radii[-1]
 
-    first, again = (align_http.padding_points(base, i)[1] for i in (0, 2))  # one base, twice
+    first, again = (padding_points(base, i)[1] for i in (0, 2))  # one base, twice
     for one, other in ((first, again), (first, base[0].points), (again, base[0].points)):
         assert not np.allclose(profile(one), profile(other), rtol=0.02)
     engine = Engine(Mapper(MODEL.path, 1, 1, False))
-    computed, count, seconds = align_http.padding_references(engine, base, 1, tmp_path)
+    computed, count, seconds = padding_references(engine, base, 1, tmp_path)
     assert count == 1 and seconds is not None and len(computed) == 1 and not computed[0].missing
     assert computed[0].name.startswith("pad-0000-")
-    cached, count, seconds = align_http.padding_references(engine, base, 1, tmp_path)
+    cached, count, seconds = padding_references(engine, base, 1, tmp_path)
     assert count == 0 and seconds is None
     assert cached[0].points_sha256 == computed[0].points_sha256
     assert np.array_equal(cached[0].field, computed[0].field)
@@ -89,12 +91,14 @@ def test_a_tiny_run_needs_no_extra_and_reports_every_figure(tmp_path):
         f"        if name.split('.')[0] in {EXTRAS!r}:\n"
         "            raise ModuleNotFoundError(f'No module named {name!r}', name=name)\n"
         "sys.meta_path.insert(0, Missing())\n"
-        "from benchmarks import align_http\n"
+        "import runpy\n"
+        "from benchmarks.align_http.command import parse_args\n"
         "try:\n"
-        "    align_http.parse_args(['--accuracy'])\n"
+        "    parse_args(['--accuracy'])\n"
         "except SystemExit as stop:\n"
         "    assert stop.code == 2\n"
-        f"align_http.main({arguments!r})\n"
+        f"sys.argv = ['align_http', *{arguments!r}]\n"
+        "runpy.run_module('benchmarks.align_http', run_name='__main__')  # python -m\n"
         f"assert not [m for m in {EXTRAS!r} if m in sys.modules]\n"
     )
     done = subprocess.run(
