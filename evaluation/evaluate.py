@@ -76,11 +76,11 @@ FOREIGN = ("xarm-link-5", "pr2-finger-tip", "realsense-d435i", "random-700")
 # meshes (the differential's, the WSG50 finger) 16-75.
 METRE_SCALE_MAX = 1.0
 # Registered parts with a rotational symmetry, the order of it (0 for a revolution), measured
-# on their meshes (tests/test_scenes.py checks each): a turn by 360°/order about the axis (for
-# a revolution, any turn) moves at most 0.5 % of the surface farther than 3 % of the radius off
-# it, and a turn by half that step moves more. Seen and unseen in turn, so that the first few
-# are a mix. The differential's shaft and the KUKA flange, round at a glance, are half-turn
-# parts: a quarter turn moves a cross hole (9.5 % of the surface) and a notch (1.7 %).
+# on their meshes (tests/evaluation/test_scenes.py checks each): a turn by 360°/order about the
+# axis (for a revolution, any turn) moves at most 0.5 % of the surface farther than 3 % of the
+# radius off it, and a turn by half that step moves more. Seen and unseen in turn, so that the
+# first few are a mix. The differential's shaft and the KUKA flange, round at a glance, are
+# half-turn parts: a quarter turn moves a cross hole (9.5 % of the surface) and a notch (1.7 %).
 SYMMETRIC_PARTS = {
     "torus": 0,  # seen: a ring (of facets)
     "diff-shaft": 2,  # unseen: a stepped shaft with a cross hole

@@ -19,6 +19,7 @@ from service.api.app import create_app
 from service.settings import Settings
 
 MODEL = Settings().model  # the model and seed gallery the environment names
+ADMIN_KEY, READ_KEY = "tests-admin-key-0123", "tests-read-key-4567"  # conftest's keyed_service
 
 
 def wait_ready(client: httpx.Client, alive, timeout_s: float = 60.0) -> None:

@@ -28,7 +28,8 @@ from service.api.recent import RecentAlignments
 from service.api.schemas import AlignResponse
 from service.engine.sampling import sample_surface
 from service.settings import AuthSettings, ConsoleSettings, Settings
-from tests.conftest import ADMIN_KEY, REPO, pybullet_mesh
+from tests.meshes import pybullet_mesh
+from tests.servers import ADMIN_KEY, REPO
 
 CHROMIUM = Path("/usr/bin/chromium")  # Debian's package; .ci/run installs it
 CHROMIUM_ARGS = [

@@ -34,7 +34,8 @@ from service.client import (
 from service.client.cli import main
 from service.engine.sampling import sample_surface
 from tests.camera import INTRINSICS, depth_image
-from tests.conftest import READ_KEY, pybullet_mesh
+from tests.meshes import pybullet_mesh
+from tests.servers import READ_KEY
 
 ROTATION = Rotation.from_euler("zyx", [40, 25, -60], degrees=True).as_matrix()
 TRANSLATION = np.array([0.03, -0.02, 0.5])

@@ -16,13 +16,13 @@ import venv
 
 import pytest
 
-from tests.conftest import REPO
+from tests.servers import REPO
 
 pytestmark = pytest.mark.slow
 
 # what the tests in the runtime environment need besides the package itself
 TEST_RUNNERS = ("pytest", "httpx")
-RUNTIME_TESTS = ("tests/test_parsers.py", "tests/test_api.py")
+RUNTIME_TESTS = ("tests/api/test_parsers.py", "tests/api/test_api.py")
 # all of the first, test_api's registrations; on SQLite (the PostgreSQL cases would double the
 # time, and the full environment runs them)
 SELECTED = "(test_parsers or register or reference) and not postgresql"

@@ -19,7 +19,7 @@ from service.api.depth import depth_points
 from service.api.schemas import DepthCamera
 from service.engine.sampling import sample_surface
 from tests.camera import INTRINSICS, depth_image, unproject
-from tests.conftest import pybullet_mesh
+from tests.meshes import pybullet_mesh
 
 ROTATION = Rotation.from_euler("xyz", [30, -50, 20], degrees=True).as_matrix()
 TRANSLATION = np.array([0.02, -0.01, 0.45])  # about 6 radii in front of the camera

@@ -1,7 +1,7 @@
 """The README's sample cloud, posted as its curl example posts it, gets the right label.
 
 ``models/sample_cloud.json`` and its true pose come from ``scripts/make_sample.py``. The server
-is the real app on a loopback port (``tests.test_api.Server``) with the shipped model and seed
+is the real app on a loopback port (``tests.api.test_api.Server``) with the shipped model and seed
 gallery; skipped when the model or the sample is missing.
 """
 
@@ -14,8 +14,8 @@ import pytest
 
 from service.api.parsers import read_points
 from service.settings import MODELS_DIR, Settings
+from tests.api.test_api import Server
 from tests.backends import Location
-from tests.test_api import Server
 
 SAMPLE = MODELS_DIR / "sample_cloud.json"
 SAMPLE_PCD = MODELS_DIR / "sample_cloud.pcd"  # the same points, for the console and dpc-mn

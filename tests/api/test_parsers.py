@@ -13,6 +13,7 @@ from pypcd4 import Encoding, PointCloud
 
 from service.api.parsers import file_kind, read_points
 from service.errors import InvalidPoints
+from tests.meshes import BROKEN_STL, LATIN1_STL
 
 COUNT = 256  # points a mesh is sampled to
 MAX_POINTS = 1000
@@ -58,15 +59,6 @@ def test_a_binary_stl_is_recognised_without_a_suffix(box):
     data = export(box, "stl")
     assert file_kind(data, None) == ".stl"
     assert read_points(data, "upload", COUNT, MAX_POINTS).shape == (COUNT, 3)
-
-
-# text STLs from CAD tools that write their own code page: trimesh decodes them with
-# charset_normalizer, which the runtime dependencies must bring (tests/test_runtime_install.py)
-LATIN1_STL = (
-    "solid pi\xe8ce\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 0.1 0 0\n"
-    "vertex 0 0.1 0\nendloop\nendfacet\nendsolid pi\xe8ce\n".encode("latin-1")
-)
-BROKEN_STL = b"solid part\n\xff\xfe facet normal 0 0 1\nendsolid\n"
 
 
 def test_a_text_stl_that_is_not_utf8_is_read():

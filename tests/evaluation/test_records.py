@@ -9,8 +9,7 @@ from evaluation.cases import make_cases, object_scale
 from evaluation.metrics import diameter, summarize
 from evaluation.records import NO_ANSWER, Answer, Truth, case_record
 from service.engine.sampling import sample_surface
-
-from .conftest import pybullet_mesh
+from tests.meshes import pybullet_mesh
 
 pytest.importorskip("open3d", exc_type=ImportError)  # sensor views: its wheel needs libusb
 

@@ -33,7 +33,7 @@ from service.engine.views import (
     splat_visible,
 )
 from service.engine.visibility import visible_points
-from tests.conftest import pybullet_mesh
+from tests.meshes import pybullet_mesh
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> float:

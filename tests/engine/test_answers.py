@@ -18,7 +18,7 @@ from service.engine.surroundings import set_aside_surroundings
 from service.engine.views import directions
 from service.gallery.gallery_file import load_gallery
 from service.settings import Settings
-from tests.conftest import pybullet_mesh
+from tests.meshes import pybullet_mesh
 
 SETTINGS = Settings()
 needs_model = pytest.mark.skipif(

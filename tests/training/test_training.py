@@ -12,7 +12,6 @@ import shlex
 import subprocess
 import sys
 import typing
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,14 +21,13 @@ torch = pytest.importorskip("torch")
 
 from service.engine.mapping import Mapper  # noqa: E402
 from service.engine.registration import kabsch  # noqa: E402
+from tests.servers import REPO  # noqa: E402
 from training.data import DataConfig, TrainingClouds, direction_within  # noqa: E402
 from training.export import check_parity, export_onnx, load_checkpoint  # noqa: E402
 from training.export import main as export_main  # noqa: E402
 from training.model import DPCMN, ModelConfig  # noqa: E402
 from training.train import PAPER, config_to_dict, parse_args  # noqa: E402
 from training.train import main as train_main  # noqa: E402
-
-REPO = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture(scope="module")

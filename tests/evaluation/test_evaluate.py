@@ -13,8 +13,7 @@ from evaluation.metrics import diameter, summarize
 from evaluation.records import Answer, Truth, case_record
 from evaluation.report import PLOTS
 from service.engine.sampling import sample_surface
-
-from .conftest import pybullet_mesh
+from tests.meshes import pybullet_mesh
 
 
 def test_an_oracle_scores_perfectly():

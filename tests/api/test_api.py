@@ -30,7 +30,7 @@ from service.engine.reference import Reference
 from service.gallery.gallery_file import load_gallery
 from service.settings import EngineSettings, LimitSettings, Settings
 from tests.backends import Location
-from tests.test_parsers import BROKEN_STL, LATIN1_STL
+from tests.meshes import BROKEN_STL, LATIN1_STL
 
 SHIPPED = Settings()
 pytestmark = pytest.mark.skipif(

@@ -17,8 +17,8 @@ import yaml
 
 from service.api.app import create_app
 from service.settings import Settings
+from tests.servers import REPO
 
-REPO = Path(__file__).resolve().parent.parent
 DEPLOY = REPO / "deploy"
 KUBERNETES_VERSION = "1.30.0"  # the oldest release the manifests are meant for
 

@@ -30,9 +30,8 @@ from evaluation.scenes import (
     turned_off_surface,
 )
 from service.engine.sampling import sample_surface
+from tests.meshes import pybullet_mesh
 from training.objects import load_manifest, load_object_meshes
-
-from .conftest import pybullet_mesh
 
 o3d = pytest.importorskip("open3d", exc_type=ImportError)  # its wheel needs libusb
 
