@@ -12,7 +12,7 @@ from service.engine.sampling import sample_surface
 from service.settings import AuthSettings, GallerySettings, Settings
 from tests.backends import BACKENDS, Backend
 from tests.meshes import pybullet_mesh
-from tests.servers import ADMIN_KEY, MODEL, READ_KEY, ThreadServer
+from tests.servers import ADMIN_KEY, MODEL, READ_KEY, Server
 
 
 @pytest.fixture(scope="session")
@@ -41,13 +41,13 @@ def backend(request, tmp_path_factory) -> Backend:
     return Backend(request.param, tmp_path_factory, server)
 
 
-def empty_server(data_dir: Path, **groups) -> ThreadServer:
+def empty_server(data_dir: Path, **groups) -> Server:
     """The shipped model, an empty gallery (so it starts at once), a one-render self-check."""
     if not MODEL.path.exists():
         pytest.skip(f"no ONNX model at {MODEL.path}")
     model = MODEL.model_copy(update={"gallery": data_dir / "no-seed.npz"})
     gallery = GallerySettings(data_dir=data_dir, self_check_poses=1)
-    return ThreadServer(Settings(model=model, gallery=gallery, **groups))
+    return Server(Settings(model=model, gallery=gallery, **groups))
 
 
 @pytest.fixture(scope="session")

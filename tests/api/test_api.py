@@ -11,9 +11,7 @@ from __future__ import annotations
 import io
 import json
 import re
-import socket
 import threading
-import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -22,58 +20,30 @@ import numpy as np
 import orjson
 import pytest
 import trimesh
-import uvicorn
 
-from service.api.app import create_app
 from service.engine.mapping import file_sha256
 from service.engine.reference import Reference
 from service.gallery.gallery_file import load_gallery
 from service.settings import EngineSettings, LimitSettings, Settings
 from tests.backends import Location
 from tests.meshes import BROKEN_STL, LATIN1_STL
+from tests.servers import MODEL, Server, eventually, needs_model
 
-SHIPPED = Settings()
-pytestmark = pytest.mark.skipif(
-    not SHIPPED.model.path.exists(),
-    reason=f"no ONNX model at {SHIPPED.model.path} (export one, or set DPC_MODEL__PATH)",
-)
+pytestmark = needs_model
 
 MAX_POINTS = 20_000
 MAX_BODY = 2 * 1024 * 1024
 
 
-class Server:
-    """The app served by uvicorn in a thread, and an httpx client for it."""
-
-    def __init__(self, location: Location, gallery: Path | None = None, wait_ready: bool = True):
-        self.settings = Settings(
-            model=SHIPPED.model.model_copy(update={"gallery": gallery or SHIPPED.model.gallery}),
-            engine=EngineSettings(),
-            gallery=location.settings(reference_points=512, self_check_poses=2),
-            limits=LimitSettings(max_points=MAX_POINTS, max_body_bytes=MAX_BODY),
-        )
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            port = probe.getsockname()[1]
-        self.app = create_app(self.settings)
-        config = uvicorn.Config(self.app, host="127.0.0.1", port=port, log_level="warning")
-        self.server = uvicorn.Server(config)
-        self.thread = threading.Thread(target=self.server.run, daemon=True)
-        self.thread.start()
-        self.client = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=60.0)
-        deadline = time.monotonic() + 30
-        while not self.server.started:
-            assert self.thread.is_alive(), "the server did not start"
-            assert time.monotonic() < deadline, "the server did not start in 30 s"
-            time.sleep(0.02)
-        while wait_ready and self.client.get("/v2/health/ready").status_code != 200:
-            assert time.monotonic() < deadline, "the gallery did not load in 30 s"
-            time.sleep(0.05)
-
-    def stop(self) -> None:
-        self.client.close()
-        self.server.should_exit = True
-        self.thread.join(timeout=10)
+def api_settings(location: Location, gallery: Path | None = None) -> Settings:
+    """A server's settings: the shipped model, its seed gallery (or ``gallery``), the gallery at
+    ``location``, small references and two self-check renders, the limits above."""
+    return Settings(
+        model=MODEL.model_copy(update={"gallery": gallery or MODEL.gallery}),
+        engine=EngineSettings(),
+        gallery=location.settings(reference_points=512, self_check_poses=2),
+        limits=LimitSettings(max_points=MAX_POINTS, max_body_bytes=MAX_BODY),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +54,7 @@ def location(backend) -> Location:
 
 @pytest.fixture(scope="module")
 def server(location):
-    running = Server(location)
+    running = Server(api_settings(location))
     yield running
     running.stop()
 
@@ -157,7 +127,7 @@ def test_the_store_is_seeded_from_the_shipped_gallery(api, seeded):
 def test_a_part_whose_turns_nearly_fit_is_registered_with_a_warning(api):
     """The KUKA flange's points, registered as a cloud: turns about its axis nearly fit (a
     notch tells them apart); the description lists them and the operator is told."""
-    (flange,) = [r for r in load_gallery(Settings().model.gallery)[0] if r.name == "kuka-link-7"]
+    (flange,) = [r for r in load_gallery(MODEL.gallery)[0] if r.name == "kuka-link-7"]
     body = {"name": "flange-copy", "points": np.asarray(flange.points).tolist()}
     created = api.post("/references?self_check=false", json=body)
     assert created.status_code == 201, created.text
@@ -579,7 +549,7 @@ def test_the_documentation_pages_load_nothing_from_another_host(api):
 
 
 def test_an_empty_gallery_answers_409(backend, tmp_path):
-    empty = Server(backend.new(), gallery=tmp_path / "none.npz")
+    empty = Server(api_settings(backend.new(), gallery=tmp_path / "none.npz"))
     try:
         assert empty.client.get("/health").json()["references"] == 0
         response = empty.client.post("/align", json={"points": GOOD})
@@ -597,7 +567,7 @@ def test_a_restart_keeps_the_references(server, location, api, seeded):
     before = api.get("/references").json()
     server.stop()
 
-    again = Server(location)
+    again = Server(api_settings(location))
     try:
         assert again.client.get("/references").json() == before  # deleted seeds stay deleted
         assert again.client.get("/references/kept").json()["num_points"] == 400
@@ -628,13 +598,15 @@ def test_a_damaged_store_is_not_ready(backend):
     store.close()
     damaged.execute("UPDATE reference SET extras = ?", ('{"scale": 2.0}',))
 
-    broken = Server(damaged, wait_ready=False)
-    try:
-        deadline = time.monotonic() + 20
-        while broken.client.get("/health").json()["status"] == "loading":
-            assert time.monotonic() < deadline
-            time.sleep(0.05)
+    broken = Server(api_settings(damaged), ready=False)
+
+    def loaded() -> httpx.Response:
         health = broken.client.get("/health")
+        assert health.json()["status"] != "loading"
+        return health
+
+    try:
+        health = eventually(loaded, timeout=60)
         assert health.status_code == 503 and health.json()["status"] == "failed"
         assert "checksum" in health.json()["detail"]
         assert broken.client.get("/v2/health/ready").status_code == 503
@@ -652,7 +624,7 @@ def test_references_of_another_model_are_recomputed(backend):
     store.put(stale_reference("stale", points), model_hash="0" * 64)
     store.set_meta("seeded_from", "")  # as if seeded before
 
-    server = Server(location)
+    server = Server(api_settings(location))
     try:
         listed = server.client.get("/references").json()["references"]
         assert [r["name"] for r in listed] == ["stale"]

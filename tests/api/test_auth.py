@@ -10,9 +10,9 @@ import pytest
 
 from service.api import auth
 from service.settings import AuthSettings, GallerySettings, Settings
-from tests.servers import MODEL, ThreadServer
+from tests.servers import MODEL, Server, cloud, needs_model
 
-pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
+pytestmark = needs_model
 
 ADMIN, READ = "admin-key-0123456789", "read-key-9876543210"
 KEYS = {ADMIN: "admin", READ: "read"}
@@ -34,14 +34,9 @@ def settings(tmp_path, **auth_settings) -> Settings:
     )
 
 
-def cloud(seed: int, count: int = 300) -> list[list[float]]:
-    rng = np.random.default_rng(seed)
-    return (rng.normal(size=(count, 3)) * [0.1, 0.2, 0.3]).astype(np.float32).tolist()
-
-
 @pytest.fixture(scope="module")
 def keyed(tmp_path_factory):
-    server = ThreadServer(settings(tmp_path_factory.mktemp("keyed"), keys=KEYS))
+    server = Server(settings(tmp_path_factory.mktemp("keyed"), keys=KEYS))
     yield server
     server.stop()
 
@@ -54,7 +49,7 @@ def prepare(client, operation: str, case: str) -> None:
     if operation == "delete":  # something to delete
         client.post(
             "/references?replace=true",
-            json={"name": name_of(case) + "-d", "points": cloud(3)},
+            json={"name": name_of(case) + "-d", "points": cloud(seed=3).tolist()},
             headers=CALLERS["admin (bearer)"],
         )
 
@@ -67,14 +62,16 @@ def call(client, operation: str, headers: dict, case: str):
     if operation == "describe":
         return client.get("/references/seed", headers=headers)
     if operation == "align":
-        return client.post("/align", json={"points": cloud(1)}, headers=headers)
+        return client.post("/align", json={"points": cloud(seed=1).tolist()}, headers=headers)
     if operation == "register":
-        body = {"name": name, "points": cloud(2)}
+        body = {"name": name, "points": cloud(seed=2).tolist()}
         return client.post("/references", json=body, headers=headers)
     if operation == "delete":
         return client.delete(f"/references/{name}-d", headers=headers)
     if operation == "read a file":
-        return client.post("/points", files={"file": ("a.npy", npy(cloud(4)))}, headers=headers)
+        return client.post(
+            "/points", files={"file": ("a.npy", npy(cloud(seed=4)))}, headers=headers
+        )
     if operation == "reference points":
         return client.get("/references/seed/points", headers=headers)
     if operation == "self-check":
@@ -84,7 +81,7 @@ def call(client, operation: str, headers: dict, case: str):
     raise AssertionError(operation)
 
 
-def npy(points: list[list[float]]) -> bytes:
+def npy(points: np.ndarray) -> bytes:
     buffer = io.BytesIO()
     np.save(buffer, np.asarray(points, dtype=np.float32))
     return buffer.getvalue()
@@ -108,7 +105,7 @@ def test_every_operation_needs_the_right_role(keyed, operation):
     client = keyed.client
     client.post(
         "/references?replace=true",
-        json={"name": "seed", "points": cloud(0)},
+        json={"name": "seed", "points": cloud(seed=0).tolist()},
         headers=CALLERS["admin (bearer)"],
     )
     for (case, headers), expected in zip(CALLERS.items(), EXPECTED[operation], strict=True):
@@ -172,11 +169,11 @@ def test_the_openapi_document_declares_the_schemes_and_roles(keyed):
 
 
 def test_reads_may_be_open_while_writes_need_an_admin_key(tmp_path):
-    server = ThreadServer(settings(tmp_path, keys=KEYS, require_key_for_reads=False))
+    server = Server(settings(tmp_path, keys=KEYS, require_key_for_reads=False))
     try:
         client = server.client
         assert client.get("/health").json()["auth"] == "keys-for-writes"
-        body = {"name": "x", "points": cloud(2)}
+        body = {"name": "x", "points": cloud(seed=2).tolist()}
         assert client.post("/references", json=body).status_code == 401
         read = {"X-API-Key": READ}
         assert client.post("/references", json=body, headers=read).status_code == 403
@@ -184,7 +181,7 @@ def test_reads_may_be_open_while_writes_need_an_admin_key(tmp_path):
         assert client.post("/references", json=body, headers=admin).status_code == 201
         assert client.get("/references").status_code == 200
         assert client.get("/references/x").status_code == 200
-        assert client.post("/align", json={"points": cloud(1)}).status_code == 200
+        assert client.post("/align", json={"points": cloud(seed=1).tolist()}).status_code == 200
         assert client.delete("/references/x", headers=read).status_code == 403
         paths = client.get("/openapi.json").json()["paths"]
         assert "security" not in paths["/align"]["post"]
@@ -195,11 +192,11 @@ def test_reads_may_be_open_while_writes_need_an_admin_key(tmp_path):
 
 def test_with_no_key_the_service_is_open_and_says_so(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="service"):
-        server = ThreadServer(settings(tmp_path))
+        server = Server(settings(tmp_path))
     try:
         client = server.client
         assert client.get("/health").json()["auth"] == "open"
-        body = {"name": "anyone", "points": cloud(2)}
+        body = {"name": "anyone", "points": cloud(seed=2).tolist()}
         assert client.post("/references", json=body).status_code == 201
         assert client.delete("/references/anyone").status_code == 204
         document = client.get("/openapi.json").json()

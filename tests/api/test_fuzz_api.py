@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, settings
 
 from service.api.app import create_app
 from service.settings import AuthSettings, GallerySettings, LimitSettings, Settings
-from tests.servers import MODEL, ThreadServer
+from tests.servers import MODEL, Server, needs_model
 
 schemathesis = pytest.importorskip("schemathesis")
 from schemathesis.specs.openapi.checks import positive_data_acceptance  # noqa: E402
@@ -24,7 +24,7 @@ ADMIN = "fuzz-admin-key-000"
 AUTH = {"Authorization": f"Bearer {ADMIN}"}
 EXAMPLES = int(os.environ.get("FUZZ_EXAMPLES", "25"))  # per operation; more for a long run
 
-pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
+pytestmark = needs_model
 
 
 def fuzz_settings(data_dir: Path) -> Settings:
@@ -40,7 +40,7 @@ def fuzz_settings(data_dir: Path) -> Settings:
 
 @pytest.fixture(scope="module")
 def fuzzed_server(tmp_path_factory):
-    server = ThreadServer(fuzz_settings(tmp_path_factory.mktemp("fuzz")))
+    server = Server(fuzz_settings(tmp_path_factory.mktemp("fuzz")))
     yield server
     server.stop()
 

@@ -9,7 +9,6 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from evaluation.served import seed_store
@@ -17,7 +16,7 @@ from service.api.limiter import Abandoned, Busy, Job, Limiter, TimedOut
 from service.engine.engine import Engine
 from service.engine.mapping import Mapper
 from service.settings import GallerySettings, LimitSettings, Settings
-from tests.servers import MODEL, ThreadServer
+from tests.servers import MODEL, Server, cloud, needs_model
 
 
 def sleeper(seconds: float, value: object = None):
@@ -147,16 +146,10 @@ def test_an_abandoned_job_refuses_to_commit():
 
 # --- over HTTP ----------------------------------------------------------------------------
 
-needs_model = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
 MAX_POINTS, MAX_BODY = 5_000, 256 * 1024
 
 
-def cloud(count: int, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    return (rng.normal(size=(count, 3)) * [0.1, 0.2, 0.3]).astype(np.float32)
-
-
-def limited_server(data_dir: Path, budget_s: float) -> ThreadServer:
+def limited_server(data_dir: Path, budget_s: float) -> Server:
     """One alignment at a time, a short queue, the request budget given; the gallery holds one
     reference, ``base``, written into its store before it starts (a registration computes
     views, a distance field and a symmetry: longer than a tight budget on a busy machine)."""
@@ -175,7 +168,7 @@ def limited_server(data_dir: Path, budget_s: float) -> ThreadServer:
             request_timeout_s=budget_s,
         ),
     )
-    return ThreadServer(settings)
+    return Server(settings)
 
 
 @pytest.fixture(scope="module")

@@ -8,23 +8,19 @@ import logging
 import re
 
 import numpy as np
-import pytest
 
 from service.api.logs import JsonFormatter, RequestIdFilter, request_id
-from tests.servers import MODEL, ProcessServer
+from tests.servers import ProcessServer, cloud, needs_model
 
-pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
+pytestmark = needs_model
 
 ADMIN, READ = "Adm1n-Key-QWERTY-55", "Re4d-Key-ZXCVB-77"
 WRONG = "Wr0ng-Key-POIUY-99"
 MARK = 4321.8765  # a coordinate that must never reach the logs
 
 
-def cloud(count: int = 200) -> np.ndarray:
-    rng = np.random.default_rng(3)
-    points = rng.normal(size=(count, 3)) * [0.1, 0.2, 0.3]
-    points[5] = [MARK, MARK, MARK]
-    return points
+MARKED = cloud(200, seed=3).astype(np.float64)  # float64: the mark's digits as written
+MARKED[5] = MARK
 
 
 def test_the_access_log_is_json_with_request_ids_and_no_secrets(tmp_path):
@@ -43,11 +39,11 @@ def test_the_access_log_is_json_with_request_ids_and_no_secrets(tmp_path):
         assert re.fullmatch(r"[0-9a-f]{32}", odd.headers["x-request-id"])
         assert client.get("/references", headers={"X-API-Key": WRONG}).status_code == 401
         aligned = client.post(
-            "/align", json={"points": cloud().tolist()}, headers={"X-API-Key": READ}
+            "/align", json={"points": MARKED.tolist()}, headers={"X-API-Key": READ}
         )
         assert aligned.status_code == 200, aligned.text
         body = json.dumps(
-            {"name": "marked", "points": [*cloud().tolist(), [MARK, float("nan"), MARK]]}
+            {"name": "marked", "points": [*MARKED.tolist(), [MARK, float("nan"), MARK]]}
         )
         refused = client.post(
             "/references",

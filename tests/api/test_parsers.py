@@ -14,6 +14,7 @@ from pypcd4 import Encoding, PointCloud
 from service.api.parsers import file_kind, read_points
 from service.errors import InvalidPoints
 from tests.meshes import BROKEN_STL, LATIN1_STL
+from tests.servers import cloud
 
 COUNT = 256  # points a mesh is sampled to
 MAX_POINTS = 1000
@@ -25,11 +26,10 @@ def box() -> trimesh.Trimesh:
 
 
 @pytest.fixture(scope="module")
-def cloud() -> np.ndarray:
+def scan() -> np.ndarray:
     """50 points in 5 rows of equal depth, as a camera's are: lzf finds something to compress."""
-    rng = np.random.default_rng(0)
-    points = rng.normal(size=(50, 3)).astype(np.float32)
-    points[:, 2] = np.repeat(rng.normal(size=5), 10)
+    points = cloud(50, seed=0, spread=1.0)
+    points[:, 2] = np.repeat(np.random.default_rng(1).normal(size=5), 10)
     return points
 
 
@@ -73,13 +73,13 @@ def test_a_malformed_text_stl_is_named():
     assert "module" not in str(caught.value)  # not "No module named 'charset_normalizer'"
 
 
-def test_a_ply_cloud_is_used_as_is(cloud):
-    data = trimesh.PointCloud(cloud).export(file_type="ply")
-    np.testing.assert_allclose(read_points(data, "scan.ply", COUNT, MAX_POINTS), cloud)
+def test_a_ply_cloud_is_used_as_is(scan):
+    data = trimesh.PointCloud(scan).export(file_type="ply")
+    np.testing.assert_allclose(read_points(data, "scan.ply", COUNT, MAX_POINTS), scan)
 
 
-def test_a_ply_cloud_is_recognised_by_content(cloud):
-    data = trimesh.PointCloud(cloud).export(file_type="ply")
+def test_a_ply_cloud_is_recognised_by_content(scan):
+    data = trimesh.PointCloud(scan).export(file_type="ply")
     assert file_kind(data, "scan.bin") == ".ply"
 
 
@@ -95,32 +95,32 @@ def pcd(cloud: np.ndarray, data: str, fields: str = "x y z") -> bytes:
 
 @pytest.mark.parametrize("data", ["ascii", "binary", "binary_compressed"])
 @pytest.mark.parametrize("fields", ["x y z", "intensity z y x"])
-def test_pcd_clouds(cloud, data, fields):
-    written = pcd(cloud, data, fields)
+def test_pcd_clouds(scan, data, fields):
+    written = pcd(scan, data, fields)
     assert f"DATA {data}\n".encode() in written
     points = read_points(written, "scan.pcd", COUNT, MAX_POINTS)
-    np.testing.assert_allclose(points, cloud, atol=1e-9)  # ascii: 10 decimals
+    np.testing.assert_allclose(points, scan, atol=1e-9)  # ascii: 10 decimals
 
 
-def test_a_float64_pcd_without_a_suffix(cloud):
+def test_a_float64_pcd_without_a_suffix(scan):
     buffer = io.BytesIO()
-    PointCloud.from_points(cloud.astype(np.float64), ("x", "y", "z"), [np.float64] * 3).save(buffer)
+    PointCloud.from_points(scan.astype(np.float64), ("x", "y", "z"), [np.float64] * 3).save(buffer)
     assert file_kind(buffer.getvalue(), None) == ".pcd"
     points = read_points(buffer.getvalue(), None, COUNT, MAX_POINTS)
-    np.testing.assert_array_equal(points, cloud.astype(np.float64))
+    np.testing.assert_array_equal(points, scan.astype(np.float64))
 
 
-def test_an_organised_pcd_drops_its_empty_pixels(cloud):
+def test_an_organised_pcd_drops_its_empty_pixels(scan):
     """An organised cloud (HEIGHT > 1) marks pixels without a return with NaN, as PCL does."""
     grid = np.full((10, 6, 3), np.nan, dtype=np.float32)
-    grid.reshape(-1, 3)[::2] = cloud[:30]
+    grid.reshape(-1, 3)[::2] = scan[:30]
     saved = PointCloud.from_xyz_points(grid.reshape(-1, 3))
     saved.metadata = saved.metadata.derive(width=6, height=10)
     buffer = io.BytesIO()
     saved.save(buffer, Encoding.BINARY)
     assert b"HEIGHT 10" in buffer.getvalue()
     points = read_points(buffer.getvalue(), "organised.pcd", COUNT, MAX_POINTS)
-    np.testing.assert_array_equal(points, cloud[:30])
+    np.testing.assert_array_equal(points, scan[:30])
 
 
 def npy(array: np.ndarray) -> bytes:
@@ -129,9 +129,9 @@ def npy(array: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
-def test_an_npy_cloud(cloud):
-    np.testing.assert_array_equal(read_points(npy(cloud), "scan.npy", COUNT, MAX_POINTS), cloud)
-    np.testing.assert_array_equal(read_points(npy(cloud), "no-suffix", COUNT, MAX_POINTS), cloud)
+def test_an_npy_cloud(scan):
+    np.testing.assert_array_equal(read_points(npy(scan), "scan.npy", COUNT, MAX_POINTS), scan)
+    np.testing.assert_array_equal(read_points(npy(scan), "no-suffix", COUNT, MAX_POINTS), scan)
 
 
 def truncated(ply: bytes) -> bytes:
@@ -163,7 +163,7 @@ def truncated(ply: bytes) -> bytes:
         (lambda c, b: b"VERSION 0.7\nFIELDS x y z\n", "a.pcd", "no DATA line"),
     ],
 )
-def test_bad_files_are_named(cloud, box, make, name, words):
+def test_bad_files_are_named(scan, box, make, name, words):
     with pytest.raises(InvalidPoints) as caught:
-        read_points(make(cloud, box), name, COUNT, MAX_POINTS)
+        read_points(make(scan, box), name, COUNT, MAX_POINTS)
     assert words in str(caught.value)

@@ -1,7 +1,7 @@
 """The README's sample cloud, posted as its curl example posts it, gets the right label.
 
 ``models/sample_cloud.json`` and its true pose come from ``scripts/make_sample.py``. The server
-is the real app on a loopback port (``tests.api.test_api.Server``) with the shipped model and seed
+is the real app on a loopback port (``tests.servers.Server``) with the shipped model and seed
 gallery; skipped when the model or the sample is missing.
 """
 
@@ -13,27 +13,23 @@ import numpy as np
 import pytest
 
 from service.api.parsers import read_points
-from service.settings import MODELS_DIR, Settings
-from tests.api.test_api import Server
-from tests.backends import Location
+from service.settings import MODELS_DIR, GallerySettings, Settings
+from tests.servers import MODEL, Server, needs_model
 
 SAMPLE = MODELS_DIR / "sample_cloud.json"
 SAMPLE_PCD = MODELS_DIR / "sample_cloud.pcd"  # the same points, for the console and dpc-mn
 POSE = MODELS_DIR / "sample_cloud_pose.json"
-MODEL = Settings().model.path
 
 pytestmark = pytest.mark.skipif(
     not (SAMPLE.exists() and POSE.exists()),
     reason="no sample cloud: run python scripts/make_sample.py",
 )
-needs_model = pytest.mark.skipif(
-    not MODEL.exists(), reason=f"no ONNX model at {MODEL} (export one, or set DPC_MODEL__PATH)"
-)
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    running = Server(Location(tmp_path_factory.mktemp("data")))
+    gallery = GallerySettings(data_dir=tmp_path_factory.mktemp("data"))
+    running = Server(Settings(model=MODEL, gallery=gallery))
     yield running
     running.stop()
 

@@ -5,16 +5,13 @@ import pytest
 
 from service.api.validation import points_from_raw, validate_points
 from service.errors import InvalidPoints
+from tests.servers import cloud
 
 LIMITS = {"min_points": 4, "max_points": 100}
 
 
-def cloud(count: int = 10, seed: int = 0) -> list[list[float]]:
-    return np.random.default_rng(seed).normal(size=(count, 3)).tolist()
-
-
 def test_a_list_of_triples_becomes_float32():
-    points = cloud()
+    points = cloud(10).tolist()
     array = validate_points(points, **LIMITS)
     assert array.shape == (10, 3) and array.dtype == np.float32
     np.testing.assert_allclose(array, np.array(points), rtol=1e-6)
@@ -30,23 +27,23 @@ def test_integers_and_arrays_are_numbers():
     ("points", "words"),
     [
         ([], "empty"),
-        (cloud(3), "fewer than the minimum of 4"),
-        (cloud(101), "more than the maximum of 100"),
+        (cloud(3).tolist(), "fewer than the minimum of 4"),
+        (cloud(101).tolist(), "more than the maximum of 100"),
         ({"x": 1}, "list of [x, y, z] triples"),
         ("1 2 3", "list of [x, y, z] triples"),
-        ([*cloud(5), [1.0, 2.0]], "points[5] has 2 values"),
-        ([*cloud(5), [1.0, 2.0, 3.0, 4.0]], "points[5] has 4 values"),
-        ([*cloud(5), 7.0], "points[5] is a number"),
-        ([*cloud(5), [[1.0, 2.0, 3.0]]], "points[5] has 1 value,"),
-        ([*cloud(5), [1.0, [2.0], 3.0]], "points[5][1] is a list"),
-        ([*cloud(5), [1.0, "2", 3.0]], "points[5][1] is a string"),
-        ([*cloud(5), [True, 2.0, 3.0]], "points[5][0] is a boolean"),
-        ([*cloud(5), [1.0, None, 3.0]], "points[5][1] is null"),
-        ([*cloud(5), [1.0, 2.0, float("nan")]], "NaN and infinity"),
-        ([*cloud(5), [1.0, float("-inf"), 3.0]], "NaN and infinity"),
-        ([*cloud(5), [1e39, 0.0, 0.0]], "too large for a 32-bit float"),
-        ([*cloud(5), [10**400, 0, 0]], "too large for a 32-bit float"),
-        ([*cloud(5), [4.47709384069477e37, 0.0, 0.0]], "beyond 1e+18"),  # a 500 once
+        ([*cloud(5).tolist(), [1.0, 2.0]], "points[5] has 2 values"),
+        ([*cloud(5).tolist(), [1.0, 2.0, 3.0, 4.0]], "points[5] has 4 values"),
+        ([*cloud(5).tolist(), 7.0], "points[5] is a number"),
+        ([*cloud(5).tolist(), [[1.0, 2.0, 3.0]]], "points[5] has 1 value,"),
+        ([*cloud(5).tolist(), [1.0, [2.0], 3.0]], "points[5][1] is a list"),
+        ([*cloud(5).tolist(), [1.0, "2", 3.0]], "points[5][1] is a string"),
+        ([*cloud(5).tolist(), [True, 2.0, 3.0]], "points[5][0] is a boolean"),
+        ([*cloud(5).tolist(), [1.0, None, 3.0]], "points[5][1] is null"),
+        ([*cloud(5).tolist(), [1.0, 2.0, float("nan")]], "NaN and infinity"),
+        ([*cloud(5).tolist(), [1.0, float("-inf"), 3.0]], "NaN and infinity"),
+        ([*cloud(5).tolist(), [1e39, 0.0, 0.0]], "too large for a 32-bit float"),
+        ([*cloud(5).tolist(), [10**400, 0, 0]], "too large for a 32-bit float"),
+        ([*cloud(5).tolist(), [4.47709384069477e37, 0.0, 0.0]], "beyond 1e+18"),  # a 500 once
         ([[1.0, 2.0, 3.0]] * 8, "(nearly) the same"),
         ([[1000.0, 2.0, 3.0]] * 7 + [[1000.0, 2.0, 3.0000001]], "(nearly) the same"),
     ],

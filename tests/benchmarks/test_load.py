@@ -7,11 +7,9 @@ import json
 import subprocess
 import sys
 
-import pytest
+from tests.servers import REPO, needs_model
 
-from tests.servers import MODEL, REPO
-
-pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
+pytestmark = needs_model
 
 RATE, DURATION_S = 2, 30  # well under what 2 busy cores sustain (scripts/load.py --find-max)
 

@@ -11,17 +11,15 @@ import json
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
-import httpx
 import numpy as np
 import pytest
 from PIL import Image
 from pypcd4 import PointCloud
 from scipy.spatial.transform import Rotation
 
-from evaluation.served import REPO, free_port, service_env
+from evaluation.served import service_env
 from service.client import (
     Client,
     DepthCamera,
@@ -35,7 +33,7 @@ from service.client.cli import main
 from service.engine.sampling import sample_surface
 from tests.camera import INTRINSICS, depth_image
 from tests.meshes import pybullet_mesh
-from tests.servers import READ_KEY
+from tests.servers import READ_KEY, REPO, free_port, wait_ready
 
 ROTATION = Rotation.from_euler("zyx", [40, 25, -60], degrees=True).as_matrix()
 TRANSLATION = np.array([0.03, -0.02, 0.5])
@@ -179,18 +177,6 @@ def test_the_command_line(service, scan, tmp_path, capsys):
         assert status == 0 and "usage: dpc-mn" in out, command
 
 
-def wait_live(port: int, process: subprocess.Popen) -> None:
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        assert process.poll() is None, "the service exited"
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/v2/health/live", timeout=1).status_code == 200:
-                return
-        except httpx.TransportError:
-            time.sleep(0.1)
-    raise AssertionError("the service did not answer in 60 s")
-
-
 def test_the_service_s_command_lines(tmp_path):
     """``python -m service --help`` helps; ``dpc-mn serve --port`` wins over DPC_SERVER__PORT."""
     helped = subprocess.run(
@@ -202,7 +188,7 @@ def test_the_service_s_command_lines(tmp_path):
     command = Path(sys.executable).parent / "dpc-mn"
     process = subprocess.Popen([str(command), "serve", "--port", str(port)], cwd=REPO, env=env)
     try:
-        wait_live(port, process)
+        wait_ready(f"http://127.0.0.1:{port}", lambda: process.poll() is None, live_only=True)
     finally:
         process.terminate()
         process.wait(timeout=30)

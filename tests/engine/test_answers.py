@@ -19,11 +19,9 @@ from service.engine.views import directions
 from service.gallery.gallery_file import load_gallery
 from service.settings import Settings
 from tests.meshes import pybullet_mesh
+from tests.servers import needs_model
 
 SETTINGS = Settings()
-needs_model = pytest.mark.skipif(
-    not SETTINGS.model.path.exists(), reason=f"no ONNX model at {SETTINGS.model.path}"
-)
 needs_calibration = pytest.mark.skipif(
     not SETTINGS.confidence_path.exists(), reason=f"no calibration at {SETTINGS.confidence_path}"
 )

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from service.engine.classifier import LinearClassifier, classifier_input, view_gram
 from service.engine.engine import Engine
@@ -11,7 +10,7 @@ from service.engine.grid import GRID_SIZE
 from service.engine.mapping import Mapper
 from service.engine.reference import Reference
 from service.settings import EngineSettings
-from tests.servers import MODEL
+from tests.servers import MODEL, needs_model
 
 RIDGE = 1e-3
 
@@ -52,7 +51,7 @@ def test_view_gram_sums_over_chunks_whatever_their_size():
     assert np.allclose(view_gram(features), stacked.T @ stacked, rtol=1e-12, atol=0)
 
 
-@pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
+@needs_model
 def test_the_engine_keeps_its_gram_through_many_changes():
     """Additions, replacements and removals update the Gram by sums; after hundreds of them it
     and the classifier are what a fit from scratch gives, and emptying the gallery resets it."""

@@ -14,10 +14,10 @@ from service.engine.mapping import Mapper
 from service.engine.views import facing, render
 from service.gallery.catalog import Catalog
 from service.settings import EngineSettings
-from tests.ledger import cloud, sha
-from tests.servers import MODEL
+from tests.ledger import sha
+from tests.servers import MODEL, cloud, needs_model
 
-pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
+pytestmark = needs_model
 
 
 @pytest.fixture(scope="module")
@@ -42,21 +42,21 @@ def replicas(backend, mapper):
 
 def test_a_replica_follows_what_another_changes(replicas):
     a, b = replicas
-    a.register("part", cloud(1))
-    a.register("other", cloud(2))
+    a.register("part", cloud(seed=1))
+    a.register("other", cloud(seed=2))
     assert b.sync() == 2 and sorted(b.engine.names()) == ["other", "part"]
-    assert sha(b.engine.get("part").points) == sha(cloud(1))
+    assert sha(b.engine.get("part").points) == sha(cloud(seed=1))
     assert b.sync() == 0  # nothing new
-    a.register("part", cloud(3), replace=True)
+    a.register("part", cloud(seed=3), replace=True)
     b.remove("other")
-    assert b.sync() == 1 and sha(b.engine.get("part").points) == sha(cloud(3))
+    assert b.sync() == 1 and sha(b.engine.get("part").points) == sha(cloud(seed=3))
     assert a.sync() == 1 and a.engine.names() == ["part"]
     assert a.sync() == 0 and b.sync() == 0  # each holds what the store holds
 
 
 def test_a_deletion_reaches_the_store_before_the_snapshot_does(replicas):
     a, b = replicas
-    a.register("part", cloud(1))
+    a.register("part", cloud(seed=1))
     b.remove("part")  # b has not followed yet: the store's row goes all the same
     assert a.sync() == 1 and len(a.engine) == 0 and a.store.is_empty()
 
@@ -73,7 +73,7 @@ class EarlierReference:
 
 def test_a_reference_without_a_field_is_recomputed(replicas, mapper):
     a, b = replicas
-    points = cloud(4)
+    points = cloud(seed=4)
     mapped = np.zeros((len(points), 2), np.float32)
     a.store.put(EarlierReference("old", points, mapped, 1.0), a.model_hash)
     assert b.sync() == 1  # a replica running: recomputed for itself, the row left alone

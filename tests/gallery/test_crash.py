@@ -18,10 +18,10 @@ from service.engine.mapping import Mapper
 from service.gallery.catalog import Catalog
 from service.gallery.sqlite_store import SQLiteStore
 from service.settings import EngineSettings
-from tests.ledger import Ledger, cloud, sha
-from tests.servers import MODEL, ProcessServer
+from tests.ledger import Ledger, sha
+from tests.servers import MODEL, ProcessServer, cloud, needs_model
 
-pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
+pytestmark = needs_model
 
 KILL_AFTER_S = (0.3, 1.0, 2.0)
 
@@ -64,7 +64,7 @@ def test_a_change_the_engine_cannot_follow_is_undone_in_the_store(tmp_path, monk
     restart cannot resurrect what the caller was told failed."""
     store = SQLiteStore.in_dir(tmp_path)
     catalog = Catalog(Engine(Mapper(MODEL.path), EngineSettings(view_grids=2)), store, 10)
-    catalog.register("kept", cloud(1))
+    catalog.register("kept", cloud(seed=1))
     original = catalog.engine.add
 
     def refuse(*args):
@@ -72,12 +72,12 @@ def test_a_change_the_engine_cannot_follow_is_undone_in_the_store(tmp_path, monk
 
     monkeypatch.setattr(catalog.engine, "add", refuse)
     with pytest.raises(RuntimeError, match="engine failed"):
-        catalog.register("new", cloud(2))
+        catalog.register("new", cloud(seed=2))
     with pytest.raises(RuntimeError, match="engine failed"):
-        catalog.register("kept", cloud(3), replace=True)
+        catalog.register("kept", cloud(seed=3), replace=True)
     (record,) = store.load_records()
     assert record.reference.name == "kept"
-    assert sha(record.reference.points) == sha(cloud(1))
+    assert sha(record.reference.points) == sha(cloud(seed=1))
     monkeypatch.setattr(catalog.engine, "add", original)
     monkeypatch.setattr(catalog.engine, "remove", refuse)
     with pytest.raises(RuntimeError, match="engine failed"):

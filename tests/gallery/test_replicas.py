@@ -11,18 +11,15 @@ one started before its database waits for it.
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
-
 import httpx
 import numpy as np
 import pytest
 
 from tests.backends import Location
-from tests.ledger import Ledger, cloud, sha
-from tests.servers import MODEL, ProcessServer, ServiceProcess
+from tests.ledger import Ledger, sha
+from tests.servers import ProcessServer, ServiceProcess, cloud, eventually, needs_model
 
-pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
+pytestmark = needs_model
 
 KILL_AFTER_S = (0.3, 1.0, 2.0)
 FOLLOW_TIMEOUT_S = 15.0  # a generous bound on the wait for a replica to follow (target: 1 s)
@@ -45,19 +42,6 @@ def replica(location: Location, log, **settings: str) -> ProcessServer:
     )
 
 
-def eventually(check: Callable[[], object], timeout: float = FOLLOW_TIMEOUT_S):
-    """``check()``'s value once it returns without an AssertionError (or a refused connection:
-    a server starting), retried until ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            return check()
-        except (AssertionError, httpx.TransportError):
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.02)
-
-
 def status(client: httpx.Client, method: str, path: str, expected: int, **kwargs) -> httpx.Response:
     response = client.request(method, path, **kwargs)
     assert response.status_code == expected, response.text
@@ -68,22 +52,27 @@ def test_a_change_on_one_replica_is_served_by_the_other(shared, tmp_path):
     a = replica(shared, tmp_path / "a.log")
     b = replica(shared, tmp_path / "b.log")
     try:
-        points = cloud(1)
+        points = cloud(seed=1)
         status(
             a.client, "POST", "/references", 201, json={"name": "part", "points": points.tolist()}
         )
-        described = eventually(lambda: status(b.client, "GET", "/references/part", 200))
+        described = eventually(
+            lambda: status(b.client, "GET", "/references/part", 200), FOLLOW_TIMEOUT_S
+        )
         assert described.json()["points_sha256"] == sha(points)
         scene = (points @ np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]]).T + 0.1).astype("<f4")
         aligned = status(b.client, "POST", "/align", 200, json={"points": scene.tolist()})
         assert aligned.json()["label"] == "part"
 
-        other = cloud(2)
+        other = cloud(seed=2)
         body = {"name": "part", "points": other.tolist()}
         status(b.client, "POST", "/references?replace=true&self_check=false", 200, json=body)
-        eventually(lambda: assert_sha(status(a.client, "GET", "/references/part", 200), sha(other)))
+        eventually(
+            lambda: assert_sha(status(a.client, "GET", "/references/part", 200), sha(other)),
+            FOLLOW_TIMEOUT_S,
+        )
         status(b.client, "DELETE", "/references/part", 204)
-        eventually(lambda: status(a.client, "GET", "/references/part", 404))
+        eventually(lambda: status(a.client, "GET", "/references/part", 404), FOLLOW_TIMEOUT_S)
         status(a.client, "POST", "/align", 409, json={"points": scene.tolist()})  # none left
         status(a.client, "DELETE", "/references/part", 404)
     finally:
@@ -105,7 +94,7 @@ def test_acknowledged_changes_survive_sigkill_of_a_replica(shared, tmp_path):
         for run, kill_after in enumerate(KILL_AFTER_S):
             a = replica(shared, tmp_path / "a.log")
             changes = ledger.write_until_killed(a, run, kill_after)
-            present = eventually(lambda: caught_up(ledger, b.client))
+            present = eventually(lambda: caught_up(ledger, b.client), FOLLOW_TIMEOUT_S)
             report.append((kill_after, changes, present, len(ledger.kept())))
         a = replica(shared, tmp_path / "a.log")
         try:
@@ -142,7 +131,7 @@ def test_a_replica_out_of_reach_of_the_database_is_not_ready_and_says_why(
     database = shared.url.rsplit("/", 1)[1]
     admin = psycopg_admin(postgres_server.url)
     try:
-        points = cloud(3)
+        points = cloud(seed=3)
         status(
             server.client, "POST", "/references", 201, json={"name": "p", "points": points.tolist()}
         )
@@ -151,7 +140,9 @@ def test_a_replica_out_of_reach_of_the_database_is_not_ready_and_says_why(
         admin.execute(
             "SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = %s", (database,)
         )
-        ready = eventually(lambda: status(server.client, "GET", "/v2/health/ready", 503))
+        ready = eventually(
+            lambda: status(server.client, "GET", "/v2/health/ready", 503), FOLLOW_TIMEOUT_S
+        )
         assert ready.json()["ready"] is False
         assert "gallery store cannot be used" in ready.json()["detail"]
         assert database in ready.json()["detail"]  # where it looked

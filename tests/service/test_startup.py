@@ -32,9 +32,9 @@ from service.engine.mapping import file_sha256
 from service.gallery.sqlite_store import FILENAME, SQLiteStore
 from service.gallery.store import SCHEMA_VERSION, StoreIncompatible
 from service.settings import EngineSettings, GallerySettings, ModelSettings, Settings
-from tests.servers import MODEL, run_service
+from tests.servers import MODEL, needs_model, run_service
 
-pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
+pytestmark = needs_model
 
 
 def release(tmp_path, model_bytes: bytes | None = None, manifest_hash: str | None = None):
