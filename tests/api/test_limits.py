@@ -12,19 +12,46 @@ from pathlib import Path
 import pytest
 
 from evaluation.served import seed_store
+from service.api import limiter as limiter_module
 from service.api.limiter import Abandoned, Busy, Job, Limiter, TimedOut
 from service.engine.engine import Engine
 from service.engine.mapping import Mapper
 from service.settings import GallerySettings, LimitSettings, Settings
-from tests.servers import MODEL, Server, cloud, needs_model
+from tests.servers import MODEL, Server, cloud, eventually, needs_model
 
 
-def sleeper(seconds: float, value: object = None):
-    def work(*args):
-        time.sleep(seconds)
-        return value
+class Held:
+    """Work that holds its slot until the test releases it: ``started`` is set once it runs in
+    its worker thread, ``finished`` once it has returned (or raised)."""
 
-    return work
+    def __init__(self, value: object = None):
+        self.value = value
+        self.started, self.released, self.finished = (threading.Event() for _ in range(3))
+
+    def __call__(self, *args):
+        self.started.set()
+        try:
+            assert self.released.wait(30), "the test never released the work"
+            return self.value
+        finally:
+            self.finished.set()
+
+
+async def until(event: threading.Event, timeout: float = 30.0) -> None:
+    """Wait for a worker thread's event without blocking the event loop."""
+    assert await asyncio.to_thread(event.wait, timeout), "the event never came"
+
+
+async def once_free(limiter: Limiter, work, timeout: float = 30.0):
+    """``limiter.align(work)`` once a slot is free: a slot is given back just after its thread
+    returns, so a request right after may still find it taken (``Busy``) for an instant."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return await limiter.align(work)
+        except Busy:
+            if time.monotonic() > deadline:
+                raise
 
 
 def run(coroutine):
@@ -37,26 +64,35 @@ def run(coroutine):
 def test_a_request_that_finds_every_slot_taken_waits_then_gets_busy():
     async def scenario():
         limiter = Limiter(align_slots=1, queue_timeout_s=0.1, request_timeout_s=5)
-        gate = threading.Event()  # the first job holds the slot until the second is refused
-        first = asyncio.create_task(limiter.align(lambda: gate.wait(10) and "first"))
-        await asyncio.sleep(0.05)
+        held = Held("first")  # holds the slot until the second is refused
+        first = asyncio.create_task(limiter.align(held))
+        await until(held.started)
         with pytest.raises(Busy) as busy:
-            await limiter.align(sleeper(0, "second"))
+            await limiter.align(lambda: "second")
         assert not first.done()  # refused while the slot was still taken, not after it
         assert busy.value.headers == {"Retry-After": "1"}
         assert "busy" in str(busy.value)
-        gate.set()
+        held.released.set()
         assert await first == "first"
-        assert await limiter.align(sleeper(0, "third")) == "third"  # the slot is free again
+        # the slot is given back before the answer is: free again at once
+        assert await limiter.align(lambda: "third") == "third"
         limiter.close()
 
     run(scenario())
 
 
 def test_requests_within_the_slots_and_queue_all_run():
+    """Six requests on two slots: each pair runs at once (a barrier for two passes only when
+    both slots are in use together), the others wait in the queue."""
+    both = threading.Barrier(2, timeout=30)
+
+    def work(index: int) -> int:
+        both.wait()
+        return index
+
     async def scenario():
-        limiter = Limiter(align_slots=2, queue_timeout_s=2, request_timeout_s=5)
-        results = await asyncio.gather(*(limiter.align(sleeper(0.1, i)) for i in range(6)))
+        limiter = Limiter(align_slots=2, queue_timeout_s=30, request_timeout_s=60)
+        results = await asyncio.gather(*(limiter.align(work, i) for i in range(6)))
         assert results == list(range(6))
         limiter.close()
 
@@ -66,48 +102,66 @@ def test_requests_within_the_slots_and_queue_all_run():
 def test_a_timed_out_request_stops_waiting_but_its_thread_keeps_the_slot():
     async def scenario():
         limiter = Limiter(align_slots=1, queue_timeout_s=0.05, request_timeout_s=0.2)
-        done = threading.Event()
-
-        def slow():
-            time.sleep(0.6)
-            done.set()
-
+        held = Held()  # runs past the budget: released only after the request has given up
         with pytest.raises(TimedOut, match="budget of 0.2 s"):
-            await limiter.align(slow)
-        assert not done.is_set()  # the request stopped waiting before the work ended
+            await limiter.align(held)
+        assert held.started.is_set() and not held.finished.is_set()
         with pytest.raises(Busy):  # the abandoned thread still runs: its slot is taken
-            await limiter.align(sleeper(0))
-        await asyncio.sleep(0.6)
-        assert done.is_set()  # it finished on its own
-        assert await limiter.align(sleeper(0, "after")) == "after"
+            await limiter.align(lambda: None)
+        held.released.set()
+        await until(held.finished)  # it finishes on its own ...
+        assert await once_free(limiter, lambda: "after") == "after"  # ... and frees its slot
         limiter.close()
 
     run(scenario())
 
 
 def test_a_write_abandoned_by_a_timeout_never_commits():
-    stored = []
+    outcome, finished = [], threading.Event()
+    released = threading.Event()  # only once the request has timed out
 
     def register(job, name):
-        time.sleep(0.4)  # the slow part, before the durable step
-        job.commit()
-        stored.append(name)
+        try:
+            assert released.wait(30), "the test never released the write"
+            job.commit()  # the durable step's gate: refused once the request has given up
+            outcome.append(f"stored {name}")
+        except Abandoned:
+            outcome.append("refused")
+            raise
+        finally:
+            finished.set()
 
     async def scenario():
         limiter = Limiter(align_slots=1, queue_timeout_s=1, request_timeout_s=0.1)
         with pytest.raises(TimedOut):
             await limiter.write(register, "late")
-        await asyncio.sleep(0.5)
+        released.set()
+        await until(finished)
         limiter.close()
 
     run(scenario())
-    assert stored == []
+    assert outcome == ["refused"]
 
 
-def test_a_write_that_committed_is_waited_for_past_the_budget():
+def test_a_write_that_committed_is_waited_for_past_the_budget(monkeypatch):
+    """The write commits, then goes on until the request's budget has run out and the request
+    has tried to give up on it: the request waits for its outcome instead of a 504."""
+
+    class Watched(Job):  # the real handshake, telling the write when the request gave up
+        def __init__(self):
+            super().__init__()
+            self.gave_up = threading.Event()
+
+        def abandon(self) -> bool:
+            abandoned = super().abandon()
+            self.gave_up.set()
+            return abandoned
+
+    monkeypatch.setattr(limiter_module, "Job", Watched)
+
     def register(job, name):
         job.commit()
-        time.sleep(0.3)  # after the durable step: the request waits for the outcome
+        assert job.gave_up.wait(30), "the budget never ran out"
         return name
 
     async def scenario():
@@ -119,15 +173,14 @@ def test_a_write_that_committed_is_waited_for_past_the_budget():
 
 
 def test_writes_do_not_queue_behind_alignments():
-    gate = threading.Event()  # the alignment may finish only once the write has answered
-
     async def scenario():
         limiter = Limiter(align_slots=1, queue_timeout_s=0.05, request_timeout_s=5)
-        busy = asyncio.create_task(limiter.align(lambda: gate.wait(10)))
-        await asyncio.sleep(0.05)
+        held = Held(True)  # the alignment may finish only once the write has answered
+        busy = asyncio.create_task(limiter.align(held))
+        await until(held.started)
         assert await limiter.write(lambda job: "written") == "written"
         assert not busy.done()
-        gate.set()
+        held.released.set()
         assert await busy
         limiter.close()
 
@@ -187,25 +240,32 @@ def limited(tmp_path_factory):
     server.stop()
 
 
+class HeldCall:
+    """A real engine call that waits, once it has started, until the test releases it."""
+
+    def __init__(self, original):
+        self.original = original
+        self.started, self.released, self.finished = (threading.Event() for _ in range(3))
+
+    def __call__(self, *args, **kwargs):
+        self.started.set()
+        try:
+            assert self.released.wait(60), "the test never released the call"
+            return self.original(*args, **kwargs)
+        finally:
+            self.finished.set()
+
+
 @needs_model
 def test_busy_and_timed_out_answers_over_http(tight, monkeypatch):
-    limited = tight
-    engine = limited.app.state.catalog.engine
-    original, finished = engine.align, threading.Event()
-
-    def slow_align(*args, **kwargs):
-        time.sleep(2.5)
-        try:
-            return original(*args, **kwargs)
-        finally:
-            finished.set()
-
-    monkeypatch.setattr(engine, "align", slow_align)
+    engine = tight.app.state.catalog.engine
+    held = HeldCall(engine.align)  # held until after its request has run out of budget
+    monkeypatch.setattr(engine, "align", held)
     body = {"points": cloud(200).tolist()}
-    with ThreadPoolExecutor(2) as pool:
-        slow = pool.submit(limited.client.post, "/align", json=body)
-        time.sleep(0.2)
-        refused = limited.client.post("/align", json=body)
+    with ThreadPoolExecutor(1) as pool:
+        slow = pool.submit(tight.client.post, "/align", json=body)
+        assert held.started.wait(60), "the first alignment never started"
+        refused = tight.client.post("/align", json=body)
         still_running = not slow.done()
         timed_out = slow.result()
     assert refused.status_code == 503, refused.text
@@ -213,29 +273,45 @@ def test_busy_and_timed_out_answers_over_http(tight, monkeypatch):
     assert still_running  # refused while the slow alignment held the slot, not after it
     assert timed_out.status_code == 504, timed_out.text
     assert "budget of 2 s" in timed_out.json()["detail"]
-    assert finished.wait(60)  # the abandoned alignment finishes on its own and frees its slot
-    monkeypatch.setattr(engine, "align", original)
-    assert limited.client.post("/align", json=body).status_code == 200
+    assert not held.finished.is_set()  # the request gave up; the alignment still runs
+    held.released.set()
+    assert held.finished.wait(60)  # the abandoned alignment finishes on its own ...
+    monkeypatch.setattr(engine, "align", held.original)
+
+    def answered() -> None:  # ... and frees its slot, an instant after it returns
+        assert tight.client.post("/align", json=body).status_code == 200
+
+    eventually(answered, timeout=30)
 
 
 @needs_model
 def test_a_registration_that_times_out_stores_nothing(tight, monkeypatch):
-    limited = tight
-    engine = limited.app.state.catalog.engine
-    original = engine.make_reference
+    catalog = tight.app.state.catalog
+    held = HeldCall(catalog.engine.make_reference)  # past the budget: released after the 504
+    monkeypatch.setattr(catalog.engine, "make_reference", held)
+    register, outcome, ended = catalog.register, [], threading.Event()
 
-    def slow_reference(*args, **kwargs):
-        time.sleep(2.6)
-        return original(*args, **kwargs)
+    def watched_register(*args, **kwargs):  # the real registration; the test sees how it ended
+        try:
+            result = register(*args, **kwargs)
+            outcome.append("stored")
+            return result
+        except Abandoned:
+            outcome.append("refused")
+            raise
+        finally:
+            ended.set()
 
-    monkeypatch.setattr(engine, "make_reference", slow_reference)
+    monkeypatch.setattr(catalog, "register", watched_register)
     body = {"name": "late", "points": cloud(300).tolist()}
-    response = limited.client.post("/references", json=body)
+    response = tight.client.post("/references", json=body)
     assert response.status_code == 504, response.text
-    time.sleep(2.0)  # the thread has finished by now, and refused to commit
-    assert limited.client.get("/references/late").status_code == 404
-    monkeypatch.setattr(engine, "make_reference", original)
-    assert limited.client.get("/v2/health/ready").status_code == 200
+    assert held.started.is_set() and not ended.is_set()
+    held.released.set()
+    assert ended.wait(60), "the abandoned registration never ended"
+    assert outcome == ["refused"]  # it reached the durable step and was refused there
+    assert tight.client.get("/references/late").status_code == 404
+    assert tight.client.get("/v2/health/ready").status_code == 200
 
 
 @needs_model
