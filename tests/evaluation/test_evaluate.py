@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -67,13 +68,28 @@ def test_answer_cases_cover_every_family_with_millimetres_of_metric_parts_only()
 
 
 @pytest.mark.slow
-def test_quick_run_writes_the_report(tmp_path: Path):
+def test_a_small_run_writes_the_whole_report(tmp_path: Path, capsys, monkeypatch):
+    """Every study, system and family of ``--quick`` on fewer objects and cases: one seen and
+    one unseen object in the full gallery, one paper pose, one keep share, one symmetric part
+    (the baselines' cases, the noise levels and the targets are the quick run's)."""
     pytest.importorskip("cv2")
     pytest.importorskip("open3d", exc_type=ImportError)  # its wheel needs libusb
     pytest.importorskip("pybullet_data")
-    from evaluation.evaluate import main
+    from evaluation import evaluate
 
-    main(["--quick", "--out", str(tmp_path)])
+    small = dataclasses.replace(
+        evaluate.QUICK,
+        seen=1,
+        unseen=1,
+        paper_poses=1,
+        keep_shares=(0.5,),
+        http_cases=2,
+        symmetric_objects=1,
+    )
+    monkeypatch.setattr(evaluate, "QUICK", small)  # the command line, on the smaller plan
+    result = evaluate.main(["--quick", "--out", str(tmp_path)])
+    assert result["plan"] == dataclasses.asdict(small)
+    assert "report written to" in capsys.readouterr().out
     readme = (tmp_path / "README.md").read_text()
     for heading in (
         "## Machine and run",
