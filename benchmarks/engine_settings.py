@@ -45,6 +45,7 @@ from evaluation.evaluate import (
     run_system,
 )
 from evaluation.evaluate_mapping import prepare_engine
+from evaluation.latency import median
 from evaluation.metrics import summarize
 from service.engine.confidence import Calibration
 from service.engine.engine import Engine
@@ -99,8 +100,7 @@ def summary(records: list[dict]) -> dict:
         "false_accepts": int(sum(r["accepted"] and not r["success"] for r in records)),
         "latency_ms_median": figures["latency_ms_median"],
         "steps_ms": {
-            step: float(np.median([r["timings_ms"].get(step, 0.0) for r in records]))
-            for step in steps
+            step: median([r["timings_ms"].get(step, 0.0) for r in records]) for step in steps
         },
     }
 

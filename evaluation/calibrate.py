@@ -28,8 +28,7 @@ import numpy as np
 from scipy.optimize import minimize
 from tqdm import tqdm
 
-from evaluation.cases import NO_MATCH, Case, make_cases
-from evaluation.evaluate import FOREIGN
+from evaluation.cases import FOREIGN, NO_MATCH, Case, make_cases
 from evaluation.evaluate_mapping import prepare_engine
 from evaluation.metrics import auroc, expected_calibration_error, succeeds
 from service.engine import confidence

@@ -78,6 +78,9 @@ from service.engine.normalize import radius
 from service.engine.sampling import sample_surface
 from service.engine.visibility import visible_points
 
+# the unseen parts kept unregistered: their clouds must be refused
+FOREIGN = ("xarm-link-5", "pr2-finger-tip", "realsense-d435i", "random-700")
+
 FULL_CLOUD_FAMILIES = ("paper-poses", "sparse", "so3", "noisy", "partial")
 ANSWER_FAMILIES = ("foreign", "junk", "units", "table", "symmetric")  # knowing when not to answer
 FAMILIES = (*FULL_CLOUD_FAMILIES, "sensor", *ANSWER_FAMILIES)

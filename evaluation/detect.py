@@ -329,7 +329,7 @@ def run_frames(
     unseen parts."""
     import httpx
 
-    from evaluation.evaluate import FOREIGN
+    from evaluation.cases import FOREIGN
     from evaluation.real_frames import pcl_milk, real_record
     from evaluation.served import ServiceProcess
     from service.settings import MODELS_DIR

@@ -52,8 +52,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from evaluation.cases import ANSWER_FAMILIES, Case, make_cases, object_scale
+from evaluation.cases import ANSWER_FAMILIES, FOREIGN, Case, make_cases, object_scale
 from evaluation.detect import FULL_FRAMES, QUICK_FRAMES, FramePlan, run_frames
+from evaluation.latency import latency_stats
 from evaluation.metrics import ADD_S_POINTS, diameter
 from evaluation.records import NO_ANSWER, Answer, Truth, case_record
 from service.engine.engine import Engine
@@ -73,17 +74,16 @@ ABLATIONS = ("engine-no-refine", "engine-paper", "engine-mapped", "engine-princi
 BASELINES = ("ppf", "fpfh")
 # Unseen objects kept out of the gallery: the foreign family's parts. Two look like registered
 # parts (a block with a round joint; a finger tip beside its finger), two do not.
-FOREIGN = ("xarm-link-5", "pr2-finger-tip", "realsense-d435i", "random-700")
 # units: only parts whose references are in metres. Measured radii: robot links, grippers and
 # household objects 0.03-0.9; the procedural blobs 2-6.4 (no unit stated); the millimetre
 # meshes (the differential's, the WSG50 finger) 16-75.
 METRE_SCALE_MAX = 1.0
 # Registered parts with a rotational symmetry, the order of it (0 for a revolution), measured
-# on their meshes (tests/test_scenes.py checks each): a turn by 360°/order about the axis (for
-# a revolution, any turn) moves at most 0.5 % of the surface farther than 3 % of the radius off
-# it, and a turn by half that step moves more. Seen and unseen in turn, so that the first few
-# are a mix. The differential's shaft and the KUKA flange, round at a glance, are half-turn
-# parts: a quarter turn moves a cross hole (9.5 % of the surface) and a notch (1.7 %).
+# on their meshes (tests/evaluation/test_scenes.py checks each): a turn by 360°/order about the
+# axis (for a revolution, any turn) moves at most 0.5 % of the surface farther than 3 % of the
+# radius off it, and a turn by half that step moves more. Seen and unseen in turn, so that the
+# first few are a mix. The differential's shaft and the KUKA flange, round at a glance, are
+# half-turn parts: a quarter turn moves a cross hole (9.5 % of the surface) and a notch (1.7 %).
 SYMMETRIC_PARTS = {
     "torus": 0,  # seen: a ring (of facets)
     "diff-shaft": 2,  # unseen: a stepped shaft with a cross hole
@@ -403,13 +403,14 @@ def http_latency(
                     if answer.status_code != 200:
                         raise RuntimeError(f"/align answered {answer.status_code}: {answer.text}")
                     right += answer.json()["label"] == case.object_name
+    stats = latency_stats(latencies, ("median_ms", "p95_ms"))
     return {
         "cases": len(cases),
         "references": len(references),
         "accuracy": right / len(cases),
         "latency_ms": latencies,
-        "latency_ms_median": float(np.median(latencies)),
-        "latency_ms_p95": float(np.percentile(latencies, 95)),
+        "latency_ms_median": stats["median_ms"],
+        "latency_ms_p95": stats["p95_ms"],
     }
 
 

@@ -114,7 +114,7 @@ def manifest_parts(registered: list[str] | None = None, foreign: list[str] | Non
     """The manifest's parts (training/objects.json) as (registered, unregistered) lists:
     ``foreign`` (default: the evaluation's FOREIGN) kept out, the rest registered, or only
     those named in ``registered``."""
-    from evaluation.evaluate import FOREIGN
+    from evaluation.cases import FOREIGN
     from training.objects import load_manifest, load_object_meshes
 
     foreign = list(FOREIGN if foreign is None else foreign)

@@ -13,6 +13,7 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 from scipy.spatial.distance import pdist
 from scipy.stats import rankdata
 
+from evaluation.latency import latency_stats
 from service.engine.alignment import alignment_error
 
 SUCCESS_ADD_S = 0.10  # success: right label and ADD-S below this share of the diameter
@@ -152,7 +153,9 @@ def summarize(records: Iterable[dict]) -> dict:
     with np.errstate(invalid="ignore"):
         success = label_ok & (add_s_values < SUCCESS_ADD_S)
         precise = label_ok & (add_s_values < PRECISE_ADD_S)
-    latency = [v for v in column("latency_ms") if np.isfinite(v)]
+    latency = latency_stats(
+        (v for v in column("latency_ms") if np.isfinite(v)), ("median_ms", "p95_ms"), np.nan
+    )
     verdicts = verdict_summary(records) if all("accepted" in r for r in records) else {}
     return {
         "cases": n,
@@ -163,8 +166,8 @@ def summarize(records: Iterable[dict]) -> dict:
         "median_add_s": _median(column("add_s")),
         "median_align_err": _median(column("align_err")),
         "median_align_err_floor": _median(column("align_err_floor")),
-        "latency_ms_median": float(np.median(latency)) if latency else float("nan"),
-        "latency_ms_p95": float(np.percentile(latency, 95)) if latency else float("nan"),
+        "latency_ms_median": latency["median_ms"],
+        "latency_ms_p95": latency["p95_ms"],
         **verdicts,
     }
 

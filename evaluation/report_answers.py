@@ -19,6 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from evaluation.latency import latency_stats  # noqa: E402
 from evaluation.metrics import (  # noqa: E402
     auroc,
     expected_calibration_error,
@@ -122,15 +123,18 @@ def step_latency(records: list[dict], family: str = "sensor") -> list[dict]:
     for record in chosen:
         for step, ms in (record.get("timings_ms") or {}).items():
             per_step[step].append(float(ms))
-    return [
-        {
-            "step": step,
-            "cases": len(values),
-            "median": float(np.median(values)),
-            "p95": float(np.percentile(values, 95)),
-        }
-        for step, values in per_step.items()
-    ]
+    rows = []
+    for step, values in per_step.items():
+        stats = latency_stats(values, ("count", "median_ms", "p95_ms"))
+        rows.append(
+            {
+                "step": step,
+                "cases": stats["count"],
+                "median": stats["median_ms"],
+                "p95": stats["p95_ms"],
+            }
+        )
+    return rows
 
 
 def calibration(records: list[dict]) -> dict:

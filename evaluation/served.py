@@ -1,5 +1,7 @@
 """``python -m service`` as a child process on a free loopback port: the one way the evaluation,
 the benchmarks, the load script and the tests start a real server, wait for it and stop it.
+``wait_ready`` is the one wait-until-ready loop (the tests' in-thread servers use it too), built
+on ``eventually``, the one polling loop.
 
 Settings go in as keyword arguments named like the environment variables without their prefix
 (``gallery__data_dir="..."`` is ``DPC_GALLERY__DATA_DIR``). The model and seed gallery default
@@ -14,7 +16,9 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import httpx
 
@@ -44,6 +48,67 @@ def service_env(port: int, inherit: bool = False, **settings: str) -> dict[str, 
         "PYTHONUNBUFFERED": "1",
     }
     return env | {f"DPC_{key.upper()}": str(value) for key, value in settings.items()}
+
+
+T = TypeVar("T")
+RETRIED = (AssertionError, httpx.TransportError)
+GALLERY_FAILED = ("loading the gallery failed", "the gallery store is")  # /v2/health/ready
+
+
+def eventually(
+    check: Callable[[], T],
+    timeout: float,
+    retried: tuple[type[BaseException], ...] = RETRIED,
+    every_s: float = 0.02,
+) -> T:
+    """``check()``'s value once it returns without raising one of ``retried`` (by default an
+    AssertionError, or a refused connection: a server starting), tried every ``every_s`` until
+    ``timeout`` seconds have passed; then its last error is raised."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return check()
+        except retried:
+            if time.monotonic() > deadline:
+                raise
+        time.sleep(every_s)
+
+
+class NotReady(AssertionError):
+    """The service answers, but not yet that it is ready."""
+
+
+def wait_ready(
+    url: str,
+    alive: Callable[[], bool],
+    timeout: float = 120.0,
+    live_only: bool = False,
+    log: Callable[[], str] = str,
+) -> None:
+    """Until the service at ``url`` is ready (``/v2/health/ready`` answers 200), or with
+    ``live_only`` until it answers at all (``/v2/health/live``): the one wait-until-ready loop.
+    Raises ``RuntimeError`` with ``log()`` (the log's tail) once ``alive()`` is False or the
+    gallery has failed to load, ``TimeoutError`` after ``timeout`` seconds."""
+    path = "/v2/health/live" if live_only else "/v2/health/ready"
+    with httpx.Client(base_url=url, timeout=5.0) as client:
+
+        def answered() -> None:
+            if not alive():
+                raise RuntimeError(f"the service exited:\n{log()}")
+            answer = client.get(path)
+            if answer.status_code == 200:
+                return
+            detail = answer.json().get("detail") or ""
+            if detail.startswith(GALLERY_FAILED):
+                raise RuntimeError(f"the gallery did not load: {detail}\n{log()}")
+            raise NotReady(detail)
+
+        try:
+            eventually(answered, timeout, (NotReady, httpx.TransportError), every_s=0.05)
+        except (NotReady, httpx.TransportError) as error:
+            raise TimeoutError(
+                f"the service was not ready in {timeout:.0f} s ({error!r})\n{log()}"
+            ) from None
 
 
 class ServiceProcess:
@@ -90,30 +155,9 @@ class ServiceProcess:
         return self.process.poll() is None
 
     def wait_ready(self, timeout: float = 120.0) -> None:
-        """Until ``/v2/health/ready`` answers 200; raises with the log's tail if the server
-        exits, its gallery fails to load, or ``timeout`` seconds pass."""
-        deadline = time.monotonic() + timeout
-        with httpx.Client(base_url=self.url, timeout=5.0) as client:
-            while True:
-                if not self.alive():
-                    raise RuntimeError(
-                        f"the service exited ({self.process.returncode}):\n{self.log()}"
-                    )
-                try:
-                    answer = client.get("/v2/health/ready")
-                    if answer.status_code == 200:
-                        self.ready_s = time.perf_counter() - self.began
-                        return
-                    detail = answer.json().get("detail") or ""
-                    if detail.startswith(("loading the gallery failed", "the gallery store is")):
-                        raise RuntimeError(f"the gallery did not load: {detail}\n{self.log()}")
-                except httpx.TransportError:
-                    pass
-                if time.monotonic() > deadline:
-                    raise TimeoutError(
-                        f"the service was not ready in {timeout:.0f} s\n{self.log()}"
-                    )
-                time.sleep(0.05)
+        """Until ``/v2/health/ready`` answers 200 (``wait_ready``); notes how long it took."""
+        wait_ready(self.url, self.alive, timeout, log=self.log)
+        self.ready_s = time.perf_counter() - self.began
 
     def log(self, lines: int = 30) -> str:
         try:

@@ -46,6 +46,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from evaluation.latency import latency_stats  # noqa: E402
 from evaluation.served import ServiceProcess  # noqa: E402
 from service.gallery.gallery_file import load_gallery  # noqa: E402 - numpy only, no server code
 from service.settings import Settings  # noqa: E402
@@ -323,8 +324,10 @@ async def clean_up(client: httpx.AsyncClient, writes: Writes) -> None:
         await client.delete(f"/references/{name}")
 
 
-def percentile(values: list[float], q: float) -> float | None:
-    return round(float(np.percentile(values, q)), 1) if values else None
+def percentiles(values: list[float]) -> dict[str, float | None]:
+    """The median and the 99th percentile, to 0.1 ms; None without values."""
+    stats = latency_stats(values, ("p50_ms", "p99_ms"))
+    return {key: None if value is None else round(value, 1) for key, value in stats.items()}
 
 
 def summary(tally: Tally, rate: float, elapsed_s: float) -> dict:
@@ -341,8 +344,7 @@ def summary(tally: Tally, rate: float, elapsed_s: float) -> dict:
         "align_ok": ok,
         "dropped": tally.dropped,
         "transport_errors": tally.transport_errors,
-        "p50_ms": percentile(tally.latencies_ms, 50),
-        "p99_ms": percentile(tally.latencies_ms, 99),
+        **percentiles(tally.latencies_ms),
         "statuses": dict(sorted(tally.statuses.items())),
         "errors_4xx": sum(n for s, n in by_status.items() if 400 <= s < 500),
         "errors_5xx": sum(n for s, n in by_status.items() if s >= 500),

@@ -12,8 +12,9 @@ from pathlib import Path
 import pytest
 
 from evaluation.postgres import ThrowawayPostgres
+from service.gallery.open_store import open_store
 from service.gallery.sqlite_store import FILENAME
-from service.gallery.store import GalleryStore, open_store
+from service.gallery.store import GalleryStore
 from service.settings import GallerySettings
 
 BACKENDS = ("sqlite", "postgresql")

@@ -8,17 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.engine.sampling import load_mesh, sample_surface
+from service.engine.sampling import sample_surface
 from service.settings import AuthSettings, GallerySettings, Settings
 from tests.backends import BACKENDS, Backend
-from tests.servers import MODEL, ThreadServer
-
-REPO = Path(__file__).resolve().parent.parent
-
-
-def pybullet_mesh(relative: str):
-    pybullet_data = pytest.importorskip("pybullet_data")
-    return load_mesh(Path(pybullet_data.getDataPath()) / relative)
+from tests.meshes import pybullet_mesh
+from tests.servers import ADMIN_KEY, MODEL, READ_KEY, Server
 
 
 @pytest.fixture(scope="session")
@@ -47,13 +41,13 @@ def backend(request, tmp_path_factory) -> Backend:
     return Backend(request.param, tmp_path_factory, server)
 
 
-def empty_server(data_dir: Path, **groups) -> ThreadServer:
+def empty_server(data_dir: Path, **groups) -> Server:
     """The shipped model, an empty gallery (so it starts at once), a one-render self-check."""
     if not MODEL.path.exists():
         pytest.skip(f"no ONNX model at {MODEL.path}")
     model = MODEL.model_copy(update={"gallery": data_dir / "no-seed.npz"})
     gallery = GallerySettings(data_dir=data_dir, self_check_poses=1)
-    return ThreadServer(Settings(model=model, gallery=gallery, **groups))
+    return Server(Settings(model=model, gallery=gallery, **groups))
 
 
 @pytest.fixture(scope="session")
@@ -74,9 +68,6 @@ def service(tmp_path_factory):
         assert answer.status_code == 201, answer.text
     yield server
     server.stop()
-
-
-ADMIN_KEY, READ_KEY = "tests-admin-key-0123", "tests-read-key-4567"
 
 
 @pytest.fixture(scope="session")

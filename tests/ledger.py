@@ -11,11 +11,13 @@ import time
 import httpx
 import numpy as np
 
+from tests.servers import cloud, eventually
 
-def cloud(seed: int) -> np.ndarray:
+
+def varied_cloud(seed: int) -> np.ndarray:
+    """A ``cloud`` of 64-999 points and a spread of 5-50 cm along each axis, drawn by ``seed``."""
     rng = np.random.default_rng(seed)
-    count = int(rng.integers(64, 1000))
-    return (rng.normal(size=(count, 3)) * rng.uniform(0.05, 0.5, 3)).astype(np.float32)
+    return cloud(int(rng.integers(64, 1000)), seed, rng.uniform(0.05, 0.5, 3))
 
 
 def sha(points: np.ndarray) -> str:
@@ -46,16 +48,20 @@ class Ledger:
         ]
         for thread in threads:
             thread.start()
-        deadline = time.monotonic() + 20
-        while self.changes == changes_before and time.monotonic() < deadline:
-            time.sleep(0.01)  # the stream flows: the first change of this run is acknowledged
-        time.sleep(kill_after)
-        server.kill()
-        stop.set()
+        try:
+            eventually(lambda: self.flowing(changes_before), timeout=20, every_s=0.01)
+            time.sleep(kill_after)  # when in the stream the power fails: what the test varies
+        finally:
+            server.kill()
+            stop.set()
         for thread in threads:
             thread.join(timeout=30)
             assert not thread.is_alive()
         return self.changes - changes_before
+
+    def flowing(self, changes_before: int) -> None:
+        """Raises until a change after the first ``changes_before`` is acknowledged."""
+        assert self.changes > changes_before or self.failures, "no change acknowledged yet"
 
     def write(self, url: str, run: int, writer: int, stop: threading.Event) -> None:
         try:
@@ -77,7 +83,7 @@ class Ledger:
                     return  # killed
 
     def _register_one(self, client: httpx.Client, name: str) -> None:
-        points = cloud(hash(name) % 2**32)
+        points = varied_cloud(hash(name) % 2**32)
         with self.lock:
             self.sent[name] = sha(points)
         response = client.post(

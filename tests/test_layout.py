@@ -1,5 +1,7 @@
 """The layout's promises (README, "Architecture"), read from the source with ``ast``:
-imports run one way between the wings, and no folder imports one that imports it back."""
+imports run one way between the wings, no folder imports one that imports it back, and no
+module imports one that imports it back (an import inside a function counts; one under
+``if TYPE_CHECKING:`` does not, since it never runs)."""
 
 from __future__ import annotations
 
@@ -9,6 +11,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
+MODULE_ROOTS = ("service", "training", "evaluation", "benchmarks", "scripts")
 WINGS = (  # the folders whose imports are checked, most specific first
     "service/__main__",  # the entry point: it wires the wings together
     "service/engine",
@@ -111,3 +114,113 @@ def test_no_folder_imports_one_that_imports_it_back():
 )
 def test_imports_run_one_way(wing, allowed):
     assert wing_graph()[wing] <= allowed
+
+
+# --- modules ---------------------------------------------------------------------------------
+
+
+def module_name(path: Path, repo: Path) -> str:
+    """``service/gallery/store.py`` -> ``service.gallery.store``; a package is its folder."""
+    parts = list(path.relative_to(repo).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def runtime_imports(tree: ast.AST) -> list[ast.Import | ast.ImportFrom]:
+    """Every import statement, wherever it stands, but those under ``if TYPE_CHECKING:``."""
+
+    def checking(test: ast.expr) -> bool:
+        name = test.id if isinstance(test, ast.Name) else getattr(test, "attr", None)
+        return name == "TYPE_CHECKING"
+
+    found, stack = [], [tree]
+    while stack:
+        node = stack.pop()
+        if isinstance(node, ast.If) and checking(node.test):
+            stack.extend(node.orelse)
+        elif isinstance(node, ast.Import | ast.ImportFrom):
+            found.append(node)
+        else:
+            stack.extend(ast.iter_child_nodes(node))
+    return found
+
+
+def module_graph(repo: Path = REPO, roots: tuple[str, ...] = MODULE_ROOTS) -> dict[str, set]:
+    """Which of the modules under ``roots`` each one imports: the most specific module an import
+    names (``from a import b`` is module ``a.b`` where there is one, else ``a``)."""
+    files = {module_name(p, repo): p for root in roots for p in sorted((repo / root).rglob("*.py"))}
+
+    def known(name: str) -> str | None:
+        while name and name not in files:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph: dict[str, set] = {}
+    for name, path in files.items():
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        targets = set()
+        for node in runtime_imports(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                targets |= {known(alias.name) for alias in node.names}
+                continue
+            base = node.module or ""
+            if node.level:  # relative: from the module's package, one folder up per extra dot
+                parent = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*parent, *filter(None, [node.module])])
+            for alias in node.names:
+                submodule = f"{base}.{alias.name}"
+                targets.add(submodule if submodule in files else known(base))
+        graph[name] = {t for t in targets if t and t != name}
+    return graph
+
+
+def cycles(graph: dict[str, set]) -> list[list[str]]:
+    """The groups of modules that import each other, round a cycle (Tarjan's strongly connected
+    components of more than one module)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        for nxt in graph.get(node, ()):
+            if nxt not in index:
+                visit(nxt)
+                low[node] = min(low[node], low[nxt])
+            elif nxt in stack:
+                low[node] = min(low[node], index[nxt])
+        if low[node] == index[node]:
+            group = []
+            while not group or group[-1] != node:
+                group.append(stack.pop())
+            if len(group) > 1:
+                found.append(sorted(group))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return found
+
+
+def test_no_module_imports_one_that_imports_it_back():
+    graph = module_graph()
+    assert "service.gallery.store" in graph["service.gallery.sqlite_store"]  # the graph sees
+    assert cycles(graph) == []
+
+
+def test_the_module_check_finds_a_cycle_a_lazy_import_makes(tmp_path):
+    """A function's import makes a cycle; an import for type checkers alone does not."""
+    package = tmp_path / "pkg"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "a.py").write_text("def later():\n    from pkg import b\n")
+    (package / "b.py").write_text("from . import a\n")
+    (package / "c.py").write_text("from typing import TYPE_CHECKING\nfrom pkg.a import later\n")
+    (package / "d.py").write_text(
+        "from typing import TYPE_CHECKING\nimport pkg.c\nif TYPE_CHECKING:\n    import pkg.e\n"
+    )
+    (package / "e.py").write_text("import pkg.d\n")
+    graph = module_graph(tmp_path, ("pkg",))
+    assert graph["pkg.d"] == {"pkg.c"} and graph["pkg.b"] == {"pkg.a"}
+    assert cycles(graph) == [["pkg.a", "pkg.b"]]

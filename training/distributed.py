@@ -80,7 +80,7 @@ class Ranks:
     def close(self) -> None:
         """Leave the group together: a rank that tore its group down while another was still
         writing its checkpoint was once aborted by gloo ("terminate called without an active
-        exception", tests/test_training.py on a busy machine)."""
+        exception", tests/training/test_training.py on a busy machine)."""
         if self.world > 1 or dist.is_initialized():
             dist.barrier()
             dist.destroy_process_group()

@@ -28,8 +28,9 @@ from service.engine.confidence import Calibration
 from service.engine.hypotheses import SOURCES
 from service.engine.mapping import Mapper, file_sha256
 from service.errors import StoreFull, StoreUnavailable
+from service.gallery.open_store import open_store
 from service.gallery.sqlite_store import FILENAME
-from service.gallery.store import GalleryStore, StoreIncompatible, open_store
+from service.gallery.store import GalleryStore, StoreIncompatible
 from service.settings import GallerySettings, Settings
 
 log = logging.getLogger(__name__)

@@ -9,7 +9,7 @@ past the grid's edge the edge voxel answers, and the distance stays exact to the
 
 A point may lie nearer to another sample than to its voxel centre's, by at most the voxel's
 diagonal; measured on the object set, the distance differs from a KD-tree's by less than half a
-voxel for 99 % of the points near the surface (tests/test_surface.py), and point-to-plane
+voxel for 99 % of the points near the surface (tests/engine/test_surface.py), and point-to-plane
 refinement does not see the difference (docs/decisions.md#distance-field).
 """
 

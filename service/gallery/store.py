@@ -1,10 +1,11 @@
 """The registered references, durable: one interface, two backends.
 
-``open_store(settings.gallery)`` gives the embedded default, one SQLite file in ``data_dir``
-(``service.gallery.sqlite_store``), or, when ``url`` is a ``postgresql://`` URL, a PostgreSQL
-database that several replicas share (``service.gallery.postgres_store``). Both hold the same
-tables, at schema version ``SCHEMA_VERSION``; an older database is migrated on start-up, in
-one transaction, and a newer one is refused:
+``open_store(settings.gallery)`` (``service.gallery.open_store``) gives the embedded default,
+one SQLite file in ``data_dir`` (``service.gallery.sqlite_store``), or, when ``url`` is a
+``postgresql://`` URL, a PostgreSQL database that several replicas share
+(``service.gallery.postgres_store``). Both hold the same tables, at schema version
+``SCHEMA_VERSION``; an older database is migrated on start-up, in one transaction, and a newer
+one is refused:
 
 - ``reference``: one row a reference (``service.gallery.encoding``: its arrays, its other
   fields as JSON and a sha256 of all of it, checked on every load), the hash of the ONNX model
@@ -37,7 +38,7 @@ from service.gallery import encoding
 from service.gallery.encoding import Row, StoreCorrupted
 
 if TYPE_CHECKING:
-    from service.settings import GallerySettings
+    from collections.abc import Callable
 
 __all__ = [
     "GalleryStore",
@@ -45,7 +46,6 @@ __all__ = [
     "StoreIncompatible",
     "StoreNotEmpty",
     "StoredReference",
-    "open_store",
 ]
 
 SCHEMA_VERSION = "2"
@@ -122,22 +122,6 @@ class StoredReference:
                 "recompute it from its points"
             )
         return encoding.to_reference(self.values)
-
-
-def open_store(settings: GallerySettings) -> GalleryStore:
-    """The store the settings name: PostgreSQL at ``url``, else SQLite in ``data_dir``."""
-    if settings.url:
-        from service.gallery.postgres_store import PostgresStore
-
-        return PostgresStore(
-            settings.url,
-            pool_size=settings.pool_size,
-            listen=settings.listen,
-            timeout_s=settings.connect_timeout_s,
-        )
-    from service.gallery.sqlite_store import SQLiteStore
-
-    return SQLiteStore.in_dir(settings.data_dir)
 
 
 class GalleryStore(ABC):

@@ -13,9 +13,9 @@ import pytest
 import trimesh
 from PIL import Image
 
+from tests.api.test_console import Page, browser  # noqa: F401 - the browser fixture
 from tests.conftest import empty_server
 from tests.frames import resting, shoot, spin, table
-from tests.test_console import Page, browser  # noqa: F401 - the browser fixture
 
 BOX = (0.08, 0.06, 0.04)
 SMALL = (320, 240, 262.5)  # a quarter of VGA: the same field of view, a quick /detect

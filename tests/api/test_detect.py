@@ -10,8 +10,9 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from tests.conftest import empty_server, pybullet_mesh
+from tests.conftest import empty_server
 from tests.frames import VGA, bin_walls, resting, shoot, spin, table
+from tests.meshes import pybullet_mesh
 
 BOX_A, BOX_B = (0.08, 0.06, 0.04), (0.10, 0.04, 0.03)
 

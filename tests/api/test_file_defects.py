@@ -14,7 +14,7 @@ import trimesh
 from service.api.parsers import read_points
 from service.engine.sampling import sample_surface
 from service.errors import InvalidPoints
-from tests.conftest import pybullet_mesh
+from tests.meshes import pybullet_mesh
 
 HELD, DECLARED = 3000, 9983  # the user's file: 3,000 vertices, a header that says 9,983
 

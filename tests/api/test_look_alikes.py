@@ -18,7 +18,8 @@ from scipy.spatial.transform import Rotation
 
 from service.engine.sampling import sample_surface
 from tests.camera import INTRINSICS, depth_image
-from tests.conftest import empty_server, pybullet_mesh
+from tests.conftest import empty_server
+from tests.meshes import pybullet_mesh
 
 ROTATION = Rotation.from_euler("zyx", [40, 25, -60], degrees=True).as_matrix()
 TRANSLATION = np.array([0.02, -0.01, 0.45])

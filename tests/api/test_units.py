@@ -18,7 +18,7 @@ from service.client import Client
 from service.client.cli import OK, main
 from service.engine.normalize import radius
 from service.settings import Settings
-from tests.conftest import pybullet_mesh
+from tests.meshes import pybullet_mesh
 
 SIZE = 0.05  # the duck's mesh times this: metres
 

@@ -22,8 +22,9 @@ from service.client.cli import main
 from service.engine.sampling import sample_surface
 from service.gallery import backup
 from service.settings import GallerySettings, Settings
-from tests.conftest import empty_server, pybullet_mesh
+from tests.conftest import empty_server
 from tests.ledger import cloud, sha
+from tests.meshes import pybullet_mesh
 from tests.servers import MODEL, ThreadServer
 
 

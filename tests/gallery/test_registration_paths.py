@@ -16,7 +16,7 @@ from service.engine.mapping import Mapper
 from service.engine.normalize import normalize, radius
 from service.engine.sampling import sample_surface_faces
 from service.settings import EngineSettings
-from tests.conftest import pybullet_mesh
+from tests.meshes import pybullet_mesh
 from tests.servers import MODEL
 
 pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
