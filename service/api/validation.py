@@ -12,7 +12,7 @@ from itertools import chain
 import numpy as np
 
 from service.engine.normalize import has_extent
-from service.engine.principal_axes import one_line, thinness
+from service.engine.principal_axes import bulk_thinness, one_line
 from service.engine.tuning import LINE
 from service.errors import InvalidPoints
 
@@ -126,7 +126,7 @@ def _check_values(array: np.ndarray) -> np.ndarray:
             f"all points are (nearly) the same (radius {radius:.3g}): the cloud has no "
             "scale to align"
         )
-    if (thin := thinness(centred)) < LINE:
+    if (thin := bulk_thinness(centred)) < LINE:
         raise InvalidPoints(one_line(len(points), thin))
     return points
 

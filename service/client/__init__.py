@@ -13,7 +13,7 @@
 It needs numpy and httpx only: it never imports the service's engine or API.
 """
 
-from service.client.answers import Alternative, Candidate, Pose, Reference
+from service.client.answers import Alternative, Candidate, Detection, Pose, Reference, Scene
 from service.client.client import Client, DepthCamera
 from service.client.errors import (
     BadRequest,
@@ -39,11 +39,13 @@ __all__ = [
     "Client",
     "Conflict",
     "DepthCamera",
+    "Detection",
     "Forbidden",
     "InvalidInput",
     "NotFound",
     "Pose",
     "Reference",
+    "Scene",
     "ServerError",
     "ServiceError",
     "StorageFull",

@@ -78,15 +78,7 @@ class Pose:
             confidence=answer.get("confidence"),
             reasons=list(answer.get("reasons", [])),
             ambiguous=bool(answer.get("ambiguous", False)),
-            alternatives=[
-                Alternative(
-                    np.array(a["rotation"], dtype=np.float64),
-                    np.array(a["translation"], dtype=np.float64),
-                    a.get("confidence"),
-                    a.get("label"),
-                )
-                for a in answer.get("alternatives", [])
-            ],
+            alternatives=_alternatives(answer),
             points_set_aside=answer.get("points_set_aside", 0),
             hypothesis=answer.get("hypothesis"),
             candidates=[
@@ -102,6 +94,98 @@ class Pose:
             timings_ms=dict(answer.get("timings_ms", {})),
             raw=answer,
         )
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One instance of a registered part in a frame (``POST /detect``), at its pose:
+    ``scene = rotation @ model + translation``. Only ``verdict == "match"`` is safe to act on.
+    ``indices``: the frame's points it explains (pixels, ``row * width + col``, for an
+    organized frame)."""
+
+    label: str
+    verdict: str  # "match" | "uncertain" | "no_match"
+    confidence: float | None
+    rotation: np.ndarray  # (3, 3)
+    translation: np.ndarray  # (3,)
+    transform: np.ndarray  # (4, 4)
+    alignment_error: float
+    alignment_error_normalized: float
+    reasons: list[str]
+    ambiguous: bool
+    alternatives: list[Alternative]
+    symmetry: dict[str, Any] | None
+    indices: np.ndarray  # (K,) int64
+    raw: dict[str, Any] = field(repr=False)
+
+    @property
+    def is_match(self) -> bool:
+        return self.verdict == "match"
+
+    def apply(self, model_points: np.ndarray) -> np.ndarray:
+        """Model-frame points (N, 3) placed in the scene at this pose."""
+        return np.asarray(model_points, dtype=np.float64) @ self.rotation.T + self.translation
+
+    @classmethod
+    def from_answer(cls, answer: dict[str, Any]) -> Detection:
+        return cls(
+            label=answer["label"],
+            verdict=answer["verdict"],
+            confidence=answer.get("confidence"),
+            rotation=np.array(answer["rotation"], dtype=np.float64),
+            translation=np.array(answer["translation"], dtype=np.float64),
+            transform=np.array(answer["transform"], dtype=np.float64),
+            alignment_error=answer["alignment_error"],
+            alignment_error_normalized=answer["alignment_error_normalized"],
+            reasons=list(answer.get("reasons", [])),
+            ambiguous=bool(answer.get("ambiguous", False)),
+            alternatives=_alternatives(answer),
+            symmetry=answer.get("symmetry"),
+            indices=np.asarray(answer.get("indices", []), dtype=np.int64),
+            raw=answer,
+        )
+
+
+@dataclass(frozen=True)
+class Scene:
+    """``POST /detect``'s answer: every detection in the frame, and what was left."""
+
+    detections: list[Detection]
+    num_points: int  # the frame's valid points
+    unexplained: int  # of them, claimed by no detection nor support
+    complete: bool  # False: the search stopped at its deadline (``reasons`` says so)
+    reasons: list[str]
+    timings_ms: dict[str, float]
+    raw: dict[str, Any] = field(repr=False)
+
+    @property
+    def matches(self) -> list[Detection]:
+        """The detections safe to act on."""
+        return [d for d in self.detections if d.is_match]
+
+    @classmethod
+    def from_answer(cls, answer: dict[str, Any]) -> Scene:
+        return cls(
+            detections=[Detection.from_answer(d) for d in answer.get("detections", [])],
+            num_points=answer.get("num_points", 0),
+            unexplained=answer.get("unexplained", 0),
+            complete=bool(answer.get("complete", True)),
+            reasons=list(answer.get("reasons", [])),
+            timings_ms=dict(answer.get("timings_ms", {})),
+            raw=answer,
+        )
+
+
+def _alternatives(answer: dict[str, Any]) -> list[Alternative]:
+    return [
+        Alternative(
+            np.array(a["rotation"], dtype=np.float64),
+            np.array(a["translation"], dtype=np.float64),
+            a.get("confidence"),
+            a.get("label"),
+        )
+        for a in answer.get("alternatives", [])
+    ]
 
 
 @dataclass(frozen=True)

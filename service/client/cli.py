@@ -5,6 +5,7 @@
     dpc-mn register parts/                      # every mesh in the folder: one request, one refit
     dpc-mn align scan.pcd --candidates bracket-a
     dpc-mn align depth.png --fx 300 --fy 300 --cx 160 --cy 120 --mask part.png --json
+    dpc-mn detect frame.pcd --max-instances 6
     dpc-mn references
     dpc-mn backup gallery.sqlite3               # a consistent copy while the service serves
     dpc-mn restore gallery.sqlite3              # into an empty gallery, every row checked
@@ -29,16 +30,16 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from service.client.answers import Pose, Reference
+from service.client.answers import Pose, Reference, Scene
 from service.client.client import DEFAULT_URL, Client, DepthCamera
 from service.client.errors import ServiceError, Unreachable
 
 OK, FAILED, USAGE, NOT_A_MATCH, UNREACHABLE = 0, 1, 2, 3, 4
 EPILOG = """exit status:
-  0  done (align: the verdict is "match", safe to act on)
+  0  done (align: the verdict is "match", safe to act on; detect: at least one "match")
   1  the service refused or failed the request (the reason is printed)
   2  a bad command line
-  3  align answered, but the verdict is "uncertain" or "no_match"
+  3  align answered, but the verdict is "uncertain" or "no_match"; detect found no "match"
   4  the service could not be reached"""
 URL_ENV, KEY_ENV = "DPCMN_URL", "DPCMN_API_KEY"
 PART_SUFFIXES = (".stl", ".obj", ".ply", ".pcd", ".npy", ".off", ".glb", ".gltf")
@@ -126,6 +127,24 @@ def parser() -> argparse.ArgumentParser:
     align.add_argument("--depth-scale", type=float, help="depth image: scene units per value")
     align.add_argument("--mask", help="depth image: an image of the same size; 0 leaves out")
 
+    detect = command("detect", run_detect, "Find every registered part in a camera's whole frame")
+    detect.add_argument(
+        "file", help="an organized cloud (.pcd, .npy), a cloud, or a depth image with --fx..."
+    )
+    detect.add_argument("--candidates", type=names, help="reference names, comma-separated")
+    detect.add_argument(
+        "--viewpoint", type=vector, help="where the camera was: x,y,z (--viewpoint=-1,0,0)"
+    )
+    detect.add_argument("--min-confidence", type=float, help="below it, never 'match' (0 to 1)")
+    detect.add_argument("--max-instances", type=int, help="at most this many detections")
+    detect.add_argument(
+        "--roi", type=box, help="the box searched: min_x,min_y,min_z,max_x,max_y,max_z"
+    )
+    for name in ("fx", "fy", "cx", "cy"):
+        detect.add_argument(f"--{name}", type=float, help="depth image: camera intrinsic, pixels")
+    detect.add_argument("--depth-scale", type=float, help="depth image: scene units per value")
+    detect.add_argument("--mask", help="depth image: an image of the same size; 0 leaves out")
+
     register = command(
         "register", run_register, "Register a part from a mesh or cloud file, or a folder of them"
     )
@@ -173,11 +192,16 @@ def parser() -> argparse.ArgumentParser:
     return top
 
 
-def run_align(client: Client, arguments: argparse.Namespace) -> int:
+def depth_camera(arguments: argparse.Namespace) -> DepthCamera | None:
+    """The depth image's camera from ``--fx --fy --cx --cy --depth-scale``; None without."""
     intrinsics = [arguments.fx, arguments.fy, arguments.cx, arguments.cy]
-    camera = None
     if any(value is not None for value in intrinsics) or arguments.depth_scale is not None:
-        camera = DepthCamera(*intrinsics, depth_scale=arguments.depth_scale)  # type: ignore[arg-type]
+        return DepthCamera(*intrinsics, depth_scale=arguments.depth_scale)  # type: ignore[arg-type]
+    return None
+
+
+def run_align(client: Client, arguments: argparse.Namespace) -> int:
+    camera = depth_camera(arguments)
     pose = client.align_file(
         arguments.file,
         arguments.viewpoint,
@@ -190,6 +214,21 @@ def run_align(client: Client, arguments: argparse.Namespace) -> int:
     )
     print(json.dumps(pose.raw) if arguments.json else describe_pose(pose))
     return OK if pose.is_match else NOT_A_MATCH
+
+
+def run_detect(client: Client, arguments: argparse.Namespace) -> int:
+    scene = client.detect(
+        arguments.file,
+        arguments.viewpoint,
+        arguments.candidates,
+        camera=depth_camera(arguments),
+        mask=arguments.mask,
+        max_instances=arguments.max_instances,
+        min_confidence=arguments.min_confidence,
+        roi=arguments.roi,
+    )
+    print(json.dumps(scene.raw) if arguments.json else describe_scene(scene))
+    return OK if scene.matches else NOT_A_MATCH
 
 
 def run_register(client: Client, arguments: argparse.Namespace) -> int:
@@ -325,6 +364,27 @@ def describe_pose(pose: Pose) -> str:
     return "\n".join(lines)
 
 
+def describe_scene(scene: Scene) -> str:
+    lines = [
+        f"{len(scene.matches)} of {len(scene.detections)} detection(s) match, in "
+        f"{scene.num_points} points ({scene.unexplained} unexplained)"
+    ]
+    for detection in scene.detections:
+        confidence = "unknown" if detection.confidence is None else f"{detection.confidence:.2f}"
+        lines += [
+            f"{detection.verdict}: {detection.label} (confidence {confidence}, "
+            f"{len(detection.indices)} points)",
+            f"  rotation    {_rows(detection.rotation)}",
+            f"  translation {_row(detection.translation)}",
+        ]
+        lines += [f"  reason: {reason}" for reason in detection.reasons]
+    if not scene.complete:
+        lines += [f"incomplete: {reason}" for reason in scene.reasons]
+    timings = ", ".join(f"{k} {v:.1f}" for k, v in scene.timings_ms.items())
+    lines.append(f"timings (ms): {timings}")
+    return "\n".join(lines)
+
+
 def describe_reference(reference: Reference) -> str:
     done = f"registered {reference.name}"
     if reference.raw.get("outcome") == "identical":
@@ -383,6 +443,18 @@ def vector(text: str) -> list[float]:
     if len(values) != 3:
         raise argparse.ArgumentTypeError(f"'{text}' is not three numbers x,y,z")
     return values
+
+
+def box(text: str) -> tuple[list[float], list[float]]:
+    try:
+        values = [float(part) for part in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 6:
+        raise argparse.ArgumentTypeError(
+            f"'{text}' is not six numbers min_x,min_y,min_z,max_x,max_y,max_z"
+        )
+    return values[:3], values[3:]
 
 
 def _row(values: Any) -> str:

@@ -21,7 +21,7 @@ from typing import Any
 import httpx
 import numpy as np
 
-from service.client.answers import Pose, Reference
+from service.client.answers import Pose, Reference, Scene
 from service.client.errors import ServiceError, Unreachable, error_for
 from service.client.retry import RETRY_STATUSES, Retry
 
@@ -104,6 +104,38 @@ class Client:
         options = _options(viewpoint, candidates, top_k, refine, min_confidence)
         answer = self._upload("/align", path, camera, mask, options)
         return Pose.from_answer(answer.json())
+
+    def detect(
+        self,
+        frame: np.ndarray | Sequence[Sequence[float]] | str | Path,
+        viewpoint: Sequence[float] | None = None,
+        candidates: Iterable[str] | None = None,
+        *,
+        camera: DepthCamera | None = None,
+        mask: str | Path | None = None,
+        max_instances: int | None = None,
+        min_confidence: float | None = None,
+        roi: tuple[Sequence[float], Sequence[float]] | None = None,
+    ) -> Scene:
+        """Every registered part in a camera's whole frame: points (N, 3), or a file as
+        ``align_file`` takes it (an organized PCD or NPY, a depth image with its ``camera``).
+        ``roi``: the (min, max) corners of the box searched."""
+        options = _options(viewpoint, candidates, None, None, min_confidence)
+        if max_instances is not None:
+            options["max_instances"] = int(max_instances)
+        if roi is not None:
+            options["roi"] = ",".join(repr(float(v)) for corner in roi for v in corner)
+        if isinstance(frame, str | Path):
+            answer = self._upload("/detect", frame, camera, mask, options)
+        else:
+            answer = self._request(
+                "POST",
+                "/detect",
+                content=float32_bytes(frame),
+                params=options,
+                headers={"Content-Type": RAW},
+            )
+        return Scene.from_answer(answer.json())
 
     def read_points(
         self, path: str | Path, camera: DepthCamera | None = None, mask: str | Path | None = None

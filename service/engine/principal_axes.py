@@ -90,6 +90,17 @@ def thinness(centred: np.ndarray) -> float:
     return float(np.sqrt(max(variances[1], 0.0) / max(variances[2], 1e-300)))
 
 
+def bulk_thinness(centred: np.ndarray, share: float = 0.95) -> float:
+    """``thinness`` of the ``share`` of points nearest their median where the whole cloud reads
+    as a line: one far stray point makes a blob read as one."""
+    thin = thinness(centred)
+    if thin >= 1e-2 or len(centred) < 20:
+        return thin
+    distance = np.linalg.norm(centred - np.median(centred, axis=0), axis=1)
+    bulk = centred[distance <= np.quantile(distance, share)]
+    return max(thin, thinness(bulk - bulk.mean(axis=0)))
+
+
 def one_line(count: int, thin: float) -> str:
     """Why ``count`` points of ``thinness`` ``thin`` (under ``tuning.LINE``) give no pose."""
     return (

@@ -10,6 +10,8 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from service.client import Client
+from service.client.cli import main
 from tests.conftest import empty_server
 from tests.frames import VGA, bin_walls, resting, shoot, spin, table
 from tests.meshes import pybullet_mesh
@@ -218,3 +220,25 @@ def test_an_empty_gallery_is_a_409(tmp_path):
         assert "register" in answer.json()["detail"]
     finally:
         empty.stop()
+
+
+def test_the_client_and_the_cli_detect_in_a_frame(server, meshes, tmp_path, capsys):
+    a = resting(meshes["box-a"], spin(30), 0.02, -0.01)
+    shot = shoot([(meshes["box-a"], *a)], table())
+    frame = tmp_path / "frame.pcd"
+    frame.write_bytes(shot.pcd())
+    with Client(server.url, retry_for=0) as client:
+        from_file = client.detect(frame)
+        valid = shot.points.reshape(-1, 3)
+        from_points = client.detect(valid[np.isfinite(valid[:, 0])], max_instances=1)
+    for scene in (from_file, from_points):
+        assert [d.label for d in scene.matches] == ["box-a"], scene.raw
+        (found,) = scene.matches
+        assert np.linalg.norm(found.translation - shot.poses[0][1]) < 0.01
+    assert np.mean(owners(shot, from_file.raw["detections"][0]) == 0) > 0.9  # pixels, as sent
+    assert main(["detect", str(frame), "--url", server.url]) == 0
+    assert "match: box-a" in capsys.readouterr().out
+    empty = tmp_path / "empty.pcd"
+    empty.write_bytes(shoot([], table()).pcd())
+    assert main(["detect", str(empty), "--url", server.url, "--json"]) == 3  # nothing to act on
+    assert '"detections": []' in capsys.readouterr().out

@@ -16,8 +16,9 @@ import pytest
 from evaluation.postgres import ThrowawayPostgres, Unavailable
 from service.client import Client, Unreachable
 from service.settings import GallerySettings, Settings
-from tests.ledger import cloud, sha
-from tests.servers import MODEL, ThreadServer, free_port
+from tests.ledger import sha
+from tests.ledger import varied_cloud as cloud
+from tests.servers import MODEL, Server, free_port
 
 pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
 
@@ -36,7 +37,7 @@ def test_a_registration_retried_through_a_database_restart_is_stored_once(databa
     model = MODEL.model_copy(update={"gallery": tmp_path / "no-seed.npz"})
     url = database.create_database()
     gallery = GallerySettings(data_dir=tmp_path, url=url, self_check_poses=0, connect_timeout_s=1)
-    server = ThreadServer(Settings(model=model, gallery=gallery))
+    server = Server(Settings(model=model, gallery=gallery))
     try:
         with Client(server.url, retry_for=0) as once:
             once.register("first", cloud(1))

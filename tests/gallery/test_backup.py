@@ -23,19 +23,20 @@ from service.engine.sampling import sample_surface
 from service.gallery import backup
 from service.settings import GallerySettings, Settings
 from tests.conftest import empty_server
-from tests.ledger import cloud, sha
+from tests.ledger import sha
+from tests.ledger import varied_cloud as cloud
 from tests.meshes import pybullet_mesh
-from tests.servers import MODEL, ThreadServer
+from tests.servers import MODEL, Server
 
 
-def server_on(location, **gallery) -> ThreadServer:
+def server_on(location, **gallery) -> Server:
     if not MODEL.path.exists():
         pytest.skip(f"no ONNX model at {MODEL.path}")
     model = MODEL.model_copy(update={"gallery": location.data_dir / "no-seed.npz"})
     settings = GallerySettings(
         data_dir=location.data_dir, url=location.url, self_check_poses=0, **gallery
     )
-    return ThreadServer(Settings(model=model, gallery=settings))
+    return Server(Settings(model=model, gallery=settings))
 
 
 def rows(server) -> dict[str, str]:
@@ -126,7 +127,8 @@ def test_a_damaged_copy_is_refused_and_stores_nothing(tmp_path):
             listed.write_bytes(copy.read_bytes())
             with sqlite3.connect(listed) as conn:  # a sound row, listed with other points
                 conn.execute(
-                    "UPDATE backup SET points_sha256 = ? WHERE name = 'other'", (sha(cloud(3)),)
+                    "UPDATE backup SET points_sha256 = ? WHERE name = 'other'",
+                    (sha(cloud(3)),),
                 )
             with pytest.raises(InvalidInput, match="'other': its points' sha256"):
                 client.restore(listed)

@@ -21,8 +21,8 @@ import numpy as np
 import pytest
 
 from service.settings import GallerySettings, Settings
-from tests.ledger import cloud
-from tests.servers import MODEL, ThreadServer, run_service
+from tests.ledger import varied_cloud as cloud
+from tests.servers import MODEL, Server, run_service
 
 pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
 SIZE = "6m"
@@ -45,9 +45,9 @@ def small_disk(tmp_path):
     subprocess.run(["umount", "--lazy", str(mount)], check=False)
 
 
-def server(data_dir: Path) -> ThreadServer:
+def server(data_dir: Path) -> Server:
     model = MODEL.model_copy(update={"gallery": data_dir / "no-seed.npz"})
-    return ThreadServer(Settings(model=model, gallery=GallerySettings(data_dir=data_dir)))
+    return Server(Settings(model=model, gallery=GallerySettings(data_dir=data_dir)))
 
 
 def fill(folder: Path) -> Path:
@@ -100,7 +100,10 @@ def test_a_full_disk_refuses_writes_and_keeps_serving(small_disk):
         assert replaced.status_code == 507
         batch = api.post(
             "/references/batch",
-            files=[("file", ("a.npy", npy(cloud(4)))), ("file", ("b.npy", npy(cloud(5))))],
+            files=[
+                ("file", ("a.npy", npy(cloud(4)))),
+                ("file", ("b.npy", npy(cloud(5)))),
+            ],
         )
         assert batch.status_code == 507
         assert api.delete("/references/kept").status_code == 507

@@ -12,7 +12,8 @@ from service.engine.mapping import Mapper
 from service.errors import ReferenceExists
 from service.gallery.catalog import CREATED, IDENTICAL, Catalog, Part
 from service.settings import EngineSettings
-from tests.ledger import cloud, sha
+from tests.ledger import sha
+from tests.ledger import varied_cloud as cloud
 from tests.servers import MODEL
 
 pytestmark = pytest.mark.skipif(not MODEL.path.exists(), reason=f"no ONNX model at {MODEL.path}")
