@@ -498,9 +498,8 @@ class Engine:
     def decide(
         self, query: Query, observed: Observed, ranking: Ranking, search: Search, fits: list[Fit]
     ) -> Alignment:
-        """Step 8: the best fit x coverage over every candidate and hypothesis, its canonical
-        pose among those its symmetry makes equivalent, the poses that fit alike, and the
-        alignment error on every point of the reading."""
+        """Step 8: the best fit x coverage of all, at its canonical pose (its symmetry), the
+        poses that fit alike, and the alignment error on every point of the reading."""
         snapshot = query.snapshot
         winner = fits[0]
         label = snapshot.classifier.labels[winner.row]
@@ -512,14 +511,7 @@ class Engine:
         runner_label = None if runner_up is None else snapshot.classifier.labels[runner_up.row]
         alike, alternatives = self._alike(entry, fits)
         look_alikes = self._look_alike_fits(query, search, fits, winner)
-        parts = [
-            AlternativePose(
-                *snapshot.entries[other].symmetry.canonical(fit.rotation, fit.translation),
-                confidence=0.0,
-                label=other,
-            )
-            for other, fit in look_alikes
-        ]
+        parts = self._look_alike_poses(query, look_alikes)
         query.clock.lap("decide")
         error = alignment_error(observed.scene, entry.point_tree, rotation, translation)
         query.clock.lap("measure")
@@ -543,6 +535,20 @@ class Engine:
             points=len(observed.scene),
             look_alikes=[other for other, _ in look_alikes],
         )
+
+    @staticmethod
+    def _look_alike_poses(
+        query: Query, look_alikes: list[tuple[str, Fit]]
+    ) -> list[AlternativePose]:
+        """The look-alike parts' poses, as alternatives carrying their labels."""
+        return [
+            AlternativePose(
+                *query.snapshot.entries[other].symmetry.canonical(fit.rotation, fit.translation),
+                confidence=0.0,
+                label=other,
+            )
+            for other, fit in look_alikes
+        ]
 
     def _look_alike_fits(
         self, query: Query, search: Search, fits: list[Fit], winner: Fit
@@ -719,7 +725,17 @@ class Engine:
         rest = thin.take(keep)
         labels = segments(rest, angle)  # segments
         clock.lap("segments")
-        scan = Scan(
+        scan = self._scan(query, rest, thin, supports, scales, floor, min_confidence, deadline)
+        instances = scan.instances(labels, max_instances)  # explain, take out, search again
+        clock.lap("instances")
+        instances = settle_claims(instances, len(rest), KEEP_SHARE)  # one global check
+        clock.lap("global check")
+        seen = apply_supports(frame, supports, angle)  # at full resolution
+        return scan.answer(frame, seen, supports, instances, clock)
+
+    def _scan(self, query, rest, thin, supports, scales, floor, min_confidence, deadline) -> Scan:
+        """The search of a frame's points off its supports (``service.engine.scene``)."""
+        return Scan(
             self.align,
             self.settings.tolerance,
             self.scene_calibration,
@@ -732,12 +748,6 @@ class Engine:
             (float(scales.min()), float(scales.max())),
             deadline,
         )
-        instances = scan.instances(labels, max_instances)  # explain, take out, search again
-        clock.lap("instances")
-        instances = settle_claims(instances, len(rest), KEEP_SHARE)  # one global check
-        clock.lap("global check")
-        seen = apply_supports(frame, supports, angle)  # at full resolution
-        return scan.answer(frame, seen, supports, instances, clock)
 
     def _frame_scales(self, query: Query, frame: Frame) -> np.ndarray:
         """The scales of the references a part in this frame could be: those no larger than
