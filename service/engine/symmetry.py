@@ -48,34 +48,32 @@ from scipy.spatial.transform import Rotation
 from service.engine.alignment import orthonormal
 from service.engine.icp import Surface, icp, rotation_vector
 from service.engine.principal_axes import Frame
+from service.engine.tuning import (  # docs/decisions.md#symmetry
+    DRIFT,
+    FAR,
+    FAR_EXTRA,
+    FAR_RATIO,
+    FINE_DEG,
+    MAX_FOLD,
+    MAX_GROUP,
+    MAX_NEAR,
+    NEAR,
+    NEAR_TURN_DEG,
+    QUICK_SLACK,
+    RANDOM_STARTS,
+    REVOLUTION_ANGLES_DEG,
+    REVOLUTION_SLACK,
+    ROUND_TURNS,
+    SAME_DEG,
+    SHARE,
+    SPACINGS,
+    SYMMETRY_QUICK,
+    SYMMETRY_QUICK_POINTS,
+    TOLERANCE,
+)
 from service.engine.verification import patch_distance, surface_distance
 
 RULE = 3  # the rule's version a description records: a stored older one is found again
-TOLERANCE = 0.015  # share of the scale
-SPACINGS = 0.5  # or this many sample spacings, if more
-SHARE = 0.97  # of the leave-one-out share within the tolerance
-FAR, FAR_RATIO, FAR_EXTRA = 3.0, 1.5, 0.005  # points beyond FAR tolerances: at most so many more
-REVOLUTION_ANGLES_DEG = (37.0, 101.0, 163.0, 229.0, 293.0)
-# a round surface exported as facets (a CAD mesh's chords) is off its turned self by the chord's
-# sag between facets: about 2 % of the scale for a ring of 16 facets; turns about a revolution's
-# axis are held to twice the tolerance (a gear's teeth, half a pitch off, still fail by far)
-REVOLUTION_SLACK = 2.0
-MAX_FOLD = 8
-RANDOM_STARTS = 12
-SAME_DEG = 5.0  # two found rotations this close are one
-QUICK, QUICK_POINTS = 8, 128  # the first refinement of a start: iterations, points
-QUICK_SLACK = 0.05  # the share it may fall short of the reference's own within FAR tolerances
-MAX_GROUP = 120  # the largest discrete group looked for (a 60-tooth gear, both ways up)
-NEAR = 0.8  # a turn keeping this share of the reference's own within the tolerance nearly fits
-NEAR_TURN_DEG = 10.0  # about a nearly round axis, the answer is tried at turns this far apart
-MAX_NEAR = 48
-# the answer is also tried turned this far either way about each near turn's axis, from itself
-# and from each near turn: point-to-plane ICP hardly turns a nearly round part about its axis
-# (only a hole's wall or a notch resists, and the robust kernel drops those while they lie
-# farther off than the noise), so a start 5 degrees off stays there (the KUKA flange)
-FINE_DEG = NEAR_TURN_DEG / 3
-ROUND_TURNS = 3  # near turns about one axis that make it nearly round
-DRIFT = 0.1  # share of the scale a refined symmetry may move the sample's centroid (its own error)
 
 
 @dataclass(frozen=True)
@@ -314,9 +312,15 @@ def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> S
         little), and whether it fits: a symmetry. A few iterations on a few points first:
         most starts of most parts lead nowhere."""
         rotation, translation, _ = icp(
-            chosen[:QUICK_POINTS], surface, start, _about(start, centre), noise, gate, QUICK
+            chosen[:SYMMETRY_QUICK_POINTS],
+            surface,
+            start,
+            _about(start, centre),
+            noise,
+            gate,
+            SYMMETRY_QUICK,
         )
-        moved = chosen[:QUICK_POINTS] @ rotation.T + translation
+        moved = chosen[:SYMMETRY_QUICK_POINTS] @ rotation.T + translation
         near, _ = surface_distance(surface, moved, "nearest")
         if np.mean(near < FAR * own.tolerance) < NEAR * quick_share:
             return None

@@ -126,3 +126,38 @@ TEMPLATE_FIT = 0.8  # a region whose best part explains less of it may hold seve
 WIDER = 1.25  # ... as may one wider than this many times that part's scale
 FINISH_POINTS, FINISH_ITERATIONS = 1024, 20  # an instance's pose finished on its claim
 TEMPLATE_POOL = 8  # more parts than this plausible: only the chain's candidates are placed
+
+# --- Symmetry: finding a part's turns (docs/decisions.md#symmetry) ---------------------------
+TOLERANCE = 0.015  # share of the scale
+SPACINGS = 0.5  # or this many sample spacings, if more
+SHARE = 0.97  # of the leave-one-out share within the tolerance
+FAR, FAR_RATIO, FAR_EXTRA = 3.0, 1.5, 0.005  # points beyond FAR tolerances: at most so many more
+REVOLUTION_ANGLES_DEG = (37.0, 101.0, 163.0, 229.0, 293.0)
+# a round surface exported as facets (a CAD mesh's chords) is off its turned self by the chord's
+# sag between facets: about 2 % of the scale for a ring of 16 facets; turns about a revolution's
+# axis are held to twice the tolerance (a gear's teeth, half a pitch off, still fail by far)
+REVOLUTION_SLACK = 2.0
+MAX_FOLD = 8
+RANDOM_STARTS = 12
+SAME_DEG = 5.0  # two found rotations this close are one
+SYMMETRY_QUICK, SYMMETRY_QUICK_POINTS = 8, 128  # a start's first refinement: iterations, points
+QUICK_SLACK = 0.05  # the share it may fall short of the reference's own within FAR tolerances
+MAX_GROUP = 120  # the largest discrete group looked for (a 60-tooth gear, both ways up)
+NEAR = 0.8  # a turn keeping this share of the reference's own within the tolerance nearly fits
+NEAR_TURN_DEG = 10.0  # about a nearly round axis, the answer is tried at turns this far apart
+MAX_NEAR = 48
+# the answer is also tried turned this far either way about each near turn's axis, from itself
+# and from each near turn: point-to-plane ICP hardly turns a nearly round part about its axis
+# (only a hole's wall or a notch resists, and the robust kernel drops those while they lie
+# farther off than the noise), so a start 5 degrees off stays there (the KUKA flange)
+FINE_DEG = NEAR_TURN_DEG / 3
+ROUND_TURNS = 3  # near turns about one axis that make it nearly round
+DRIFT = 0.1  # share of the scale a refined symmetry may move the sample's centroid (its own error)
+
+# --- Rendered views of a registered part (docs/decisions.md#rendered-views) --------------------
+CAMERA_DISTANCE = 6.0  # scales from the centroid to a view's camera
+PIXEL_SPACINGS = 2.0  # a depth-buffer pixel spans this many surface-sample spacings
+DEPTH_SPACINGS = 3.0  # a point this many spacings behind a pixel's nearest sample is hidden
+CLOUD_SPACINGS = 2.5  # a cloud's spacing, in median distances between neighbours
+FACING = 0.3  # a cloud's view keeps the points whose normal's cosine to its camera exceeds
+MAX_BUFFER = 1 << 22  # pixels of a dense depth buffer; a larger image is sorted instead

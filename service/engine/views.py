@@ -45,12 +45,14 @@ from scipy.spatial import cKDTree
 
 from service.engine.normalize import MIN_RELATIVE_RADIUS
 from service.engine.principal_axes import principal_axes
-
-CAMERA_DISTANCE = 6.0  # scales from the centroid to a view's camera
-PIXEL_SPACINGS = 2.0  # a depth-buffer pixel spans this many surface-sample spacings
-DEPTH_SPACINGS = 3.0  # a point this many spacings behind a pixel's nearest sample is hidden
-CLOUD_SPACINGS = 2.5  # a cloud's spacing, in median distances between neighbours
-FACING = 0.3  # a cloud's view keeps the points whose normal's cosine to its camera exceeds
+from service.engine.tuning import (  # docs/decisions.md#rendered-views
+    CAMERA_DISTANCE,
+    CLOUD_SPACINGS,
+    DEPTH_SPACINGS,
+    FACING,
+    MAX_BUFFER,
+    PIXEL_SPACINGS,
+)
 
 
 def directions(count: int) -> np.ndarray:
@@ -96,9 +98,6 @@ def splat_visible(
     *point_pixels, point_depth = project(points)
     front = _nearest_in_pixel(*surface_pixels, surface_depth, *point_pixels)
     return point_depth <= front + DEPTH_SPACINGS * spacing
-
-
-MAX_BUFFER = 1 << 22  # pixels of a dense depth buffer; a larger image is sorted instead
 
 
 def _nearest_in_pixel(
