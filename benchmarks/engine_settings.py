@@ -150,7 +150,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--gallery", type=Path, default=MODELS_DIR / "gallery.npz")
     parser.add_argument("--json", type=Path)
     parser.add_argument(
-        "--records", type=Path, help="write every case's scored answer (default variant) here"
+        "--records",
+        type=Path,
+        help="write every case's scored answer here (a variant's beside it: NAME-VARIANT.json)",
     )
     args = parser.parse_args(argv)
     args.families = [f for f in args.families.split(",") if f]
@@ -158,6 +160,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if unknown:
         parser.error(f"unknown families {unknown}; pick from {FAMILIES}")
     return args
+
+
+def variant_path(records: Path, name: str) -> Path:
+    """Where a variant's records go: beside the default's, named for it."""
+    return records.with_name(f"{records.stem}-{name}{records.suffix}")
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -198,8 +205,9 @@ def main(argv: list[str] | None = None) -> dict:
         run = engine_runner(variant, "engine", study.gallery)
         records = run_system(run, "engine", study, truths)
         report["settings"][name] = changes
-        if args.records and name == "default":
-            args.records.write_text(json.dumps(records, indent=0, default=float))
+        if args.records:  # the default's at the path, each variant's beside it
+            path = args.records if name == "default" else variant_path(args.records, name)
+            path.write_text(json.dumps(records, indent=0, default=float))
         report["variants"][name] = {
             family: summary([r for r in records if r["family"] == family])
             for family in args.families
