@@ -58,6 +58,7 @@ class FramePlan:
     baseline_frames: int  # the FPFH baseline on this many scene and bin frames (unseen)
     seen_objects: int | None  # seen objects the seen frames draw on, spread (None: all)
     unseen_objects: int | None = None  # unseen objects registered and drawn on (None: all)
+    shipped_real: bool = True  # the shipped real frame (tests/data/real/pcl-milk) posted too
 
 
 FULL_FRAMES = FramePlan(
@@ -376,7 +377,8 @@ def run_frames(
                     body = "depth-png" if as_depth else "pcd"
                     records.append(frame_record(frame, split, body, answer, latency, truths))
                 log(f"frames: {len(made)} frames posted to /detect")
-                real_records = [real_record(client, f) for f in [pcl_milk(), *(real or [])]]
+                shipped = [pcl_milk()] if plan.shipped_real else []
+                real_records = [real_record(client, f) for f in [*shipped, *(real or [])]]
                 log(f"frames: {len(real_records)} real frames posted to /detect")
     began_baseline = time.perf_counter()
     baseline_frames = [
