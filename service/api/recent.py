@@ -3,6 +3,8 @@
 A bounded ring (``Settings.recent_alignments`` entries; the oldest goes first): each entry keeps
 the points as aligned (float32), the viewpoint used, where the points came from and the answer.
 It holds every caller's points, so it is off once API keys are configured, unless asked for.
+A camera frame is kept thinned to ``KEPT_POINTS`` (every k-th point), so that 20 entries hold
+at most 16 MB however large the clouds (at the 3,145,728-point limit, 755 MB whole).
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.api.schemas import AlignResponse
+
+KEPT_POINTS = 65536  # an entry's points at most: what the console draws of a frame
 
 
 @dataclass(frozen=True)
@@ -45,6 +49,8 @@ class RecentAlignments:
     ) -> None:
         if not self.capacity:
             return
+        if len(points) > KEPT_POINTS:
+            points = points[:: -(-len(points) // KEPT_POINTS)]  # every k-th, at most KEPT_POINTS
         with self._lock:
             entry = Recorded(self._next_id, time.time(), source, points, viewpoint, answer)
             self._entries.append(entry)

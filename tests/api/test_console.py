@@ -24,7 +24,7 @@ from pypcd4 import Encoding, PointCloud
 from scipy.spatial.transform import Rotation
 
 from service.api.app import create_app
-from service.api.recent import RecentAlignments
+from service.api.recent import KEPT_POINTS, RecentAlignments
 from service.api.schemas import AlignResponse
 from service.engine.sampling import sample_surface
 from service.settings import AuthSettings, ConsoleSettings, Settings
@@ -62,6 +62,16 @@ def test_the_ring_keeps_the_last_ones():
     assert ring.get(1) is None and ring.get(3) is not None
     RecentAlignments(0).add(np.zeros((3, 3), np.float32), None, "raw", answer)
     assert RecentAlignments(0).newest_first() == []
+
+
+def test_a_camera_frame_is_kept_thinned():
+    """20 whole 2,048 x 1,536 frames would hold 755 MB: each is kept as every k-th point."""
+    ring = RecentAlignments(1)
+    frame = np.arange(2048 * 1536 * 3, dtype=np.float32).reshape(-1, 3)
+    ring.add(frame, None, "raw", AlignResponse.model_construct(label="x"))
+    (entry,) = ring.newest_first()
+    assert KEPT_POINTS // 2 < len(entry.points) <= KEPT_POINTS
+    assert (entry.points[1] - entry.points[0] == frame[48] - frame[0]).all()  # every 48th
 
 
 def test_a_reference_s_points_and_self_check(service):
