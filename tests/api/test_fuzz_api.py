@@ -22,7 +22,7 @@ from schemathesis.specs.openapi.checks import positive_data_acceptance  # noqa: 
 
 ADMIN = "fuzz-admin-key-000"
 AUTH = {"Authorization": f"Bearer {ADMIN}"}
-EXAMPLES = int(os.environ.get("FUZZ_EXAMPLES", "12"))  # per operation; more for a long run
+EXAMPLES = int(os.environ.get("FUZZ_EXAMPLES", "8"))  # per operation; more for a long run
 
 pytestmark = needs_model
 

@@ -11,7 +11,7 @@ from tests.servers import REPO, needs_model
 
 pytestmark = needs_model
 
-RATE, DURATION_S = 2, 15  # well under what 2 busy cores sustain (scripts/load.py --find-max)
+RATE, DURATION_S = 2, 10  # well under what 2 busy cores sustain (scripts/load.py --find-max)
 
 
 def test_a_short_sustained_load(tmp_path):
@@ -34,10 +34,10 @@ def test_a_short_sustained_load(tmp_path):
     assert result["achieved_rate"] >= 0.8 * RATE
     references = result["references"]
     # one every 2 s; beyond 3, the oldest is read back and deleted
-    assert references["registered"] >= 5 and references["deleted"] >= references["registered"] - 4
+    assert references["registered"] >= 3 and references["deleted"] >= references["registered"] - 4
     assert references["read_back"] == references["registered"]
     assert references["lost"] == references["changed"] == references["resurrected"] == 0
     assert result["rss_mib_start"] > 0 and result["rss_mib_end"] > 0
-    assert len(result["rss_samples"]) >= 5  # sampled every 2 s while the load ran
+    assert len(result["rss_samples"]) >= 4  # sampled every 2 s while the load ran
     assert 0 < result["rss_mib_after_warmup"] <= result["rss_mib_peak"]
     assert 0 < result["rss_mib_last_window"] <= result["rss_mib_peak"]
