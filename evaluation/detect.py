@@ -1,4 +1,4 @@
-"""The whole-frame study (shared/EVALUATION.md, "Whole frames"): ``POST /detect`` of a real
+"""The whole-frame study (docs/evaluation-protocol.md, "Whole frames"): ``POST /detect`` of a real
 ``python -m service`` on the frames of ``evaluation.frames``, and Open3D's FPFH + RANSAC + ICP
 told the right parts, on the same frames.
 

@@ -1,4 +1,4 @@
-"""Whole camera frames (shared/EVALUATION.md, "Whole frames"): parts dropped onto a table or
+"""Whole camera frames (docs/evaluation-protocol.md, "Whole frames"): parts dropped onto a table or
 into a bin by pybullet's physics, seen by a depth camera as its driver writes the frame.
 
     python -m evaluation.frames --family scene --count 4 --seed 0 --out /tmp/frames

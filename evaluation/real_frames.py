@@ -1,4 +1,4 @@
-"""Real depth frames from public robotics data (shared/EVALUATION.md, ``real``), posted to
+"""Real depth frames from public robotics data (docs/evaluation-protocol.md, ``real``), posted to
 ``POST /detect`` as their drivers wrote them, with their parts' models registered.
 
 - ``pcl-milk`` (shipped, tests/data/real/pcl-milk, BSD): PCL's Kinect-class frame of a milk
