@@ -31,8 +31,40 @@ class Alternative:
     label: str | None = None  # a look-alike part's pose (None: another pose of the answer's part)
 
 
+class Placed:
+    """What a ``Pose`` and a ``Detection`` share: a verdict and a rigid pose."""
+
+    verdict: str
+    rotation: np.ndarray
+    translation: np.ndarray
+
+    @property
+    def is_match(self) -> bool:
+        return self.verdict == "match"
+
+    def apply(self, model_points: np.ndarray) -> np.ndarray:
+        """Model-frame points (N, 3) placed in the scene at this pose."""
+        return np.asarray(model_points, dtype=np.float64) @ self.rotation.T + self.translation
+
+
+def _placement(answer: dict[str, Any]) -> dict[str, Any]:
+    """The fields of an answer's pose and its fit, as ``Pose`` and ``Detection`` hold them."""
+    return {
+        "label": answer["label"],
+        "rotation": np.array(answer["rotation"], dtype=np.float64),
+        "translation": np.array(answer["translation"], dtype=np.float64),
+        "transform": np.array(answer["transform"], dtype=np.float64),
+        "alignment_error": answer["alignment_error"],
+        "alignment_error_normalized": answer["alignment_error_normalized"],
+        "confidence": answer.get("confidence"),
+        "reasons": list(answer.get("reasons", [])),
+        "ambiguous": bool(answer.get("ambiguous", False)),
+        "alternatives": _alternatives(answer),
+    }
+
+
 @dataclass(frozen=True)
-class Pose:
+class Pose(Placed):
     """Which part the service recognised and where it is: ``scene = rotation @ model + t``.
 
     Only ``verdict == "match"`` is safe to act on; otherwise ``reasons`` says why.
@@ -56,29 +88,12 @@ class Pose:
     timings_ms: dict[str, float]
     raw: dict[str, Any] = field(repr=False)
 
-    @property
-    def is_match(self) -> bool:
-        return self.verdict == "match"
-
-    def apply(self, model_points: np.ndarray) -> np.ndarray:
-        """Model-frame points (N, 3) placed in the scene at this pose."""
-        return np.asarray(model_points, dtype=np.float64) @ self.rotation.T + self.translation
-
     @classmethod
     def from_answer(cls, answer: dict[str, Any]) -> Pose:
         return cls(
-            label=answer["label"],
+            **_placement(answer),
             score=answer["score"],
-            rotation=np.array(answer["rotation"], dtype=np.float64),
-            translation=np.array(answer["translation"], dtype=np.float64),
-            transform=np.array(answer["transform"], dtype=np.float64),
-            alignment_error=answer["alignment_error"],
-            alignment_error_normalized=answer["alignment_error_normalized"],
             verdict=answer.get("verdict", "match"),
-            confidence=answer.get("confidence"),
-            reasons=list(answer.get("reasons", [])),
-            ambiguous=bool(answer.get("ambiguous", False)),
-            alternatives=_alternatives(answer),
             points_set_aside=answer.get("points_set_aside", 0),
             hypothesis=answer.get("hypothesis"),
             candidates=[
@@ -97,7 +112,7 @@ class Pose:
 
 
 @dataclass(frozen=True)
-class Detection:
+class Detection(Placed):
     """One instance of a registered part in a frame (``POST /detect``), at its pose:
     ``scene = rotation @ model + translation``. Only ``verdict == "match"`` is safe to act on.
     ``indices``: the frame's points it explains (pixels, ``row * width + col``, for an
@@ -118,28 +133,11 @@ class Detection:
     indices: np.ndarray  # (K,) int64
     raw: dict[str, Any] = field(repr=False)
 
-    @property
-    def is_match(self) -> bool:
-        return self.verdict == "match"
-
-    def apply(self, model_points: np.ndarray) -> np.ndarray:
-        """Model-frame points (N, 3) placed in the scene at this pose."""
-        return np.asarray(model_points, dtype=np.float64) @ self.rotation.T + self.translation
-
     @classmethod
     def from_answer(cls, answer: dict[str, Any]) -> Detection:
         return cls(
-            label=answer["label"],
+            **_placement(answer),
             verdict=answer["verdict"],
-            confidence=answer.get("confidence"),
-            rotation=np.array(answer["rotation"], dtype=np.float64),
-            translation=np.array(answer["translation"], dtype=np.float64),
-            transform=np.array(answer["transform"], dtype=np.float64),
-            alignment_error=answer["alignment_error"],
-            alignment_error_normalized=answer["alignment_error_normalized"],
-            reasons=list(answer.get("reasons", [])),
-            ambiguous=bool(answer.get("ambiguous", False)),
-            alternatives=_alternatives(answer),
             symmetry=answer.get("symmetry"),
             indices=np.asarray(answer.get("indices", []), dtype=np.int64),
             raw=answer,

@@ -65,6 +65,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         return report_error(ServiceError(f"{error.strerror}: {error.filename}"), arguments.json)
 
 
+def observation_arguments(sub: argparse.ArgumentParser) -> None:
+    """What align and detect both take: candidates, viewpoint, confidence, a depth camera."""
+    sub.add_argument("--candidates", type=names, help="reference names, comma-separated")
+    sub.add_argument(
+        "--viewpoint", type=vector, help="where the sensor was: x,y,z (--viewpoint=-1,0,0)"
+    )
+    sub.add_argument("--min-confidence", type=float, help="below it, never 'match' (0 to 1)")
+    for name in ("fx", "fy", "cx", "cy"):
+        sub.add_argument(f"--{name}", type=float, help="depth image: camera intrinsic, pixels")
+    sub.add_argument("--depth-scale", type=float, help="depth image: scene units per value")
+    sub.add_argument("--mask", help="depth image: an image of the same size; 0 leaves out")
+
+
 def parser() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument(
@@ -113,37 +126,21 @@ def parser() -> argparse.ArgumentParser:
     align.add_argument(
         "file", help="a cloud (.ply, .pcd, .npy) or a depth image (.png, .tif, .npy) with --fx..."
     )
-    align.add_argument("--candidates", type=names, help="reference names, comma-separated")
-    align.add_argument(
-        "--viewpoint", type=vector, help="where the sensor was: x,y,z (--viewpoint=-1,0,0)"
-    )
-    align.add_argument("--min-confidence", type=float, help="below it, never 'match' (0 to 1)")
+    observation_arguments(align)
     align.add_argument("--top-k", type=int, help="candidates to verify geometrically")
     align.add_argument(
         "--no-refine", dest="refine", action="store_false", default=None, help="skip ICP"
     )
-    for name in ("fx", "fy", "cx", "cy"):
-        align.add_argument(f"--{name}", type=float, help="depth image: camera intrinsic, pixels")
-    align.add_argument("--depth-scale", type=float, help="depth image: scene units per value")
-    align.add_argument("--mask", help="depth image: an image of the same size; 0 leaves out")
 
     detect = command("detect", run_detect, "Find every registered part in a camera's whole frame")
     detect.add_argument(
         "file", help="an organized cloud (.pcd, .npy), a cloud, or a depth image with --fx..."
     )
-    detect.add_argument("--candidates", type=names, help="reference names, comma-separated")
-    detect.add_argument(
-        "--viewpoint", type=vector, help="where the camera was: x,y,z (--viewpoint=-1,0,0)"
-    )
-    detect.add_argument("--min-confidence", type=float, help="below it, never 'match' (0 to 1)")
+    observation_arguments(detect)
     detect.add_argument("--max-instances", type=int, help="at most this many detections")
     detect.add_argument(
         "--roi", type=box, help="the box searched: min_x,min_y,min_z,max_x,max_y,max_z"
     )
-    for name in ("fx", "fy", "cx", "cy"):
-        detect.add_argument(f"--{name}", type=float, help="depth image: camera intrinsic, pixels")
-    detect.add_argument("--depth-scale", type=float, help="depth image: scene units per value")
-    detect.add_argument("--mask", help="depth image: an image of the same size; 0 leaves out")
 
     register = command(
         "register", run_register, "Register a part from a mesh or cloud file, or a folder of them"
@@ -435,25 +432,24 @@ def names(text: str) -> list[str]:
     return [name.strip() for name in text.split(",") if name.strip()]
 
 
-def vector(text: str) -> list[float]:
+def numbers(text: str, count: int, names: str) -> list[float]:
+    """``count`` comma-separated numbers, or argparse's error naming their layout."""
     try:
         values = [float(part) for part in text.split(",")]
     except ValueError:
         values = []
-    if len(values) != 3:
-        raise argparse.ArgumentTypeError(f"'{text}' is not three numbers x,y,z")
+    if len(values) != count:
+        said = {3: "three", 6: "six"}.get(count, str(count))
+        raise argparse.ArgumentTypeError(f"'{text}' is not {said} numbers {names}")
     return values
 
 
+def vector(text: str) -> list[float]:
+    return numbers(text, 3, "x,y,z")
+
+
 def box(text: str) -> tuple[list[float], list[float]]:
-    try:
-        values = [float(part) for part in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 6:
-        raise argparse.ArgumentTypeError(
-            f"'{text}' is not six numbers min_x,min_y,min_z,max_x,max_y,max_z"
-        )
+    values = numbers(text, 6, "min_x,min_y,min_z,max_x,max_y,max_z")
     return values[:3], values[3:]
 
 

@@ -78,14 +78,7 @@ class Client:
     ) -> Pose:
         """Recognise the part in ``points`` (N, 3) and estimate its pose."""
         options = _options(viewpoint, candidates, top_k, refine, min_confidence)
-        answer = self._request(
-            "POST",
-            "/align",
-            content=float32_bytes(points),
-            params=options,
-            headers={"Content-Type": RAW},
-        )
-        return Pose.from_answer(answer.json())
+        return Pose.from_answer(self._post_points("/align", points, options).json())
 
     def align_file(
         self,
@@ -128,13 +121,7 @@ class Client:
         if isinstance(frame, str | Path):
             answer = self._upload("/detect", frame, camera, mask, options)
         else:
-            answer = self._request(
-                "POST",
-                "/detect",
-                content=float32_bytes(frame),
-                params=options,
-                headers={"Content-Type": RAW},
-            )
+            answer = self._post_points("/detect", frame, options)
         return Scene.from_answer(answer.json())
 
     def read_points(
@@ -281,6 +268,16 @@ class Client:
             files["mask"] = (Path(mask).name, Path(mask).read_bytes())
         fields = {k: v for k, v in asdict(camera).items() if v is not None} if camera else {}
         return self._request("POST", route, data=fields | options, files=files)
+
+    def _post_points(self, route: str, points, options: dict[str, Any]) -> httpx.Response:
+        """Points as raw float32 triples, the options as query parameters."""
+        return self._request(
+            "POST",
+            route,
+            content=float32_bytes(points),
+            params=options,
+            headers={"Content-Type": RAW},
+        )
 
     def _download(self, route: str, params: dict[str, Any], path: Path) -> int:
         """A copy streamed into ``path`` (beside it first, renamed once whole)."""
