@@ -157,22 +157,30 @@ def _register(
     reference (in a worker thread)."""
     known_fields(fields, ReferenceRequest.model_fields)
     identity = parse(ReferenceIdentity, {k: v for k, v in fields.items() if k != "points"})
-    limits = settings.limits
-    if source is None:
-        upload = Upload(require(fields, "points"))
-    else:
-        upload = read_upload(*source, settings.gallery.reference_points, limits.max_points)
-    points = validate_points(upload.points, limits.min_points, limits.max_points)
-    points, mesh = in_metres(points, upload.mesh, units)
+    upload = Upload(require(fields, "points")) if source is None else None
+    part = _part(settings, identity.name, upload or source, units)
     return catalog.register(
-        identity.name,
-        points,
+        part.name,
+        part.points,
         replace,
         self_check_poses,
         job.commit,
-        mesh=mesh,
-        face_index=upload.face_index,
+        mesh=part.mesh,
+        face_index=part.face_index,
     )
+
+
+def _part(
+    settings: Settings, name: str, source: Upload | tuple[bytes, str | None], units: str | None
+) -> Part:
+    """A part's points read (a file, or an ``Upload`` of sent points), validated and in
+    metres, with the mesh they were sampled on."""
+    limits = settings.limits
+    if not isinstance(source, Upload):
+        source = read_upload(*source, settings.gallery.reference_points, limits.max_points)
+    points = validate_points(source.points, limits.min_points, limits.max_points)
+    points, mesh = in_metres(points, source.mesh, units)
+    return Part(name, points, mesh, source.face_index)
 
 
 @router.post(
@@ -241,16 +249,12 @@ def _register_batch(
     self_check_poses: int,
     units: str | None = None,
 ) -> list[tuple[Reference, str, list[dict] | None]]:
-    limits = settings.limits
     parts = []
     for name, source in uploads:
         try:
-            upload = read_upload(*source, settings.gallery.reference_points, limits.max_points)
-            points = validate_points(upload.points, limits.min_points, limits.max_points)
+            parts.append(_part(settings, name, source, units))
         except InvalidPoints as error:
             raise InvalidPoints(f"part '{name}' ({source[1]}): {error}") from None
-        points, mesh = in_metres(points, upload.mesh, units)
-        parts.append(Part(name, points, mesh, upload.face_index))
     return catalog.register_many(parts, replace, self_check_poses, job.commit)
 
 
