@@ -559,8 +559,10 @@ class Engine:
         refined, then finished), had the search not verified it."""
         snapshot = query.snapshot
         labels = snapshot.classifier.labels
-        allowed = set(query.allowed.tolist())
         rows = [labels.index(o) for o in snapshot.look_alikes.get(labels[winner.row], ())]
+        if not rows:  # most parts: nothing to search, no set of the allowed rows to build
+            return []
+        allowed = set(query.allowed.tolist())
         rows = [row for row in rows if row in allowed]
         same = search.entry(winner.row).reference.points_sha256
         alike = []
