@@ -33,6 +33,9 @@ class ModelSettings(BaseModel):
 
 
 class EngineSettings(BaseModel):
+    # a cloud of more points is answered from a random sample of this many: the cost stays flat
+    # in the cloud's size (docs/decisions.md#speed)
+    align_points: int = Field(8192, ge=1024)
     network_points: int = Field(1024, ge=64)  # the observation is subsampled to this many points
     top_k: int = Field(3, ge=1)  # candidates eq. (4) proposes for geometric verification
     # observed radius / reference scale of a plausible candidate (full views: 0.96-1.05,
@@ -58,7 +61,7 @@ class EngineSettings(BaseModel):
     reject_below: float = Field(0.2, ge=0, le=1)  # below it "no_match", else "uncertain"
     # after the single views, a best refined fit x coverage under this ends the search: no
     # mapped pairs, no flips or near-symmetries (docs/decisions.md#speed); 0: never
-    hopeless: float = Field(0.0, ge=0, le=1)
+    hopeless: float = Field(0.3, ge=0, le=1)
     refine_best: int = Field(4, ge=1)  # hypotheses refined with ICP (at most 2 a part)
     icp_iterations: int = Field(12, ge=1)
     # when no refined hypothesis fits well, the best two of this many more parts are refined

@@ -70,21 +70,23 @@ def resample(
     return points[chosen] + jitter
 
 
-def make_clouds(references: list[Reference], clouds_per_object: int, seed: int) -> list[Cloud]:
-    """The benchmark's clouds (module docstring): round after round of one cloud of each
-    reference, so consecutive requests ask for different parts."""
+def make_clouds(
+    references: list[Reference], clouds_per_object: int, seed: int, count: int = CLOUD_POINTS
+) -> list[Cloud]:
+    """The benchmark's clouds (module docstring) of ``count`` points each: round after round of
+    one cloud of each reference, so consecutive requests ask for different parts."""
     clouds = []
     for k in range(clouds_per_object):
         for index, reference in enumerate(references):
             rng = np.random.default_rng([seed, index, k])
-            sample = resample(reference.points, reference.normals, CLOUD_POINTS, rng)
+            sample = resample(reference.points, reference.normals, count, rng)
             rotation = Rotation.random(random_state=rng).as_matrix()
             direction = rng.normal(size=3)
             translation = (
                 direction / np.linalg.norm(direction) * rng.uniform(0, 2) * reference.scale
             )
-            points = (sample @ rotation.T + translation)[rng.permutation(CLOUD_POINTS)]
-            clouds.append(encode(reference.name, points, rotation, translation))
+            moved = (sample @ rotation.T + translation)[rng.permutation(count)]
+            clouds.append(encode(reference.name, moved, rotation, translation))
     return clouds
 
 

@@ -119,16 +119,36 @@ def _check_values(array: np.ndarray) -> np.ndarray:
             "32-bit arithmetic overflows: send the cloud in metres or millimetres"
         )
     points = np.ascontiguousarray(array, dtype=np.float32)
+    sample = points[:: -(-len(points) // SHAPE_SAMPLE)]  # every k-th: at most SHAPE_SAMPLE
+    if len(sample) < len(points) and _shaped(sample, magnitude, SHAPE_MARGIN):
+        return points  # far from either refusal on the sample: the whole cloud is too
+    _shaped(points, magnitude, 1.0, refuse=True)
+    return points
+
+
+# The shape checks look at every k-th point of a larger cloud (docs/decisions.md#speed); a
+# cloud this close to a refusal on the sample is checked on every point
+SHAPE_SAMPLE = 8192
+SHAPE_MARGIN = 10.0
+
+
+def _shaped(points: np.ndarray, magnitude: float, margin: float, refuse: bool = False) -> bool:
+    """Whether ``points`` have ``margin`` times the extent, and the thickness across their
+    line, that a refusal needs; with ``refuse``, the refusal instead of False."""
     centred = points - points.mean(axis=0, dtype=np.float64)  # float64
     radius = float(np.sqrt(np.einsum("ij,ij->i", centred, centred).max()))
-    if not has_extent(radius, magnitude):
-        raise InvalidPoints(
-            f"all points are (nearly) the same (radius {radius:.3g}): the cloud has no "
-            "scale to align"
-        )
-    if (thin := bulk_thinness(centred)) < LINE:
-        raise InvalidPoints(one_line(len(points), thin))
-    return points
+    if not has_extent(radius / margin, magnitude):
+        if refuse:
+            raise InvalidPoints(
+                f"all points are (nearly) the same (radius {radius:.3g}): the cloud has no "
+                "scale to align"
+            )
+        return False
+    if (thin := bulk_thinness(centred)) < margin * LINE:
+        if refuse:
+            raise InvalidPoints(one_line(len(points), thin))
+        return False
+    return True
 
 
 def _kind(value: object) -> str:

@@ -56,7 +56,6 @@ from service.engine.supports import Noise, apply_supports, set_aside_supports
 from service.engine.surroundings import Reading, as_is, set_aside_surroundings
 from service.engine.symmetry import find_symmetry
 from service.engine.tuning import (
-    ALIGN_POINTS,
     ALIKE,
     DIFFERENT_DEG,
     FLAT,
@@ -352,10 +351,11 @@ class Engine:
         sensor's depth noise where the part lies, if known (``Query.tolerance``)."""
         query = self.query(candidates, top_k, refine, hypotheses, viewpoint)
         query.noise = noise
-        scene = np.asarray(points, dtype=np.float64)
+        scene = np.asarray(points)
         whole = len(scene)
-        if whole > ALIGN_POINTS:  # a random sample answers as the whole cloud would
-            scene = scene[subsample(scene, ALIGN_POINTS, np.random.default_rng(self.settings.seed))]
+        if whole > (most := self.settings.align_points):  # a sample answers as the whole would
+            scene = scene[subsample(scene, most, np.random.default_rng(self.settings.seed))]
+        scene = scene.astype(np.float64)  # the sample's points alone
         if surroundings:
             readings = self.set_aside(query, scene)  # 0
         else:

@@ -4,8 +4,6 @@ figures that chose it: docs/decisions.md, under the step's heading."""
 
 from __future__ import annotations
 
-ALIGN_POINTS = 65536  # a cloud of more points is answered from a random sample of this many
-
 # --- 0. Surroundings: the support plane and stray points (docs/decisions.md#surroundings) ---------
 SURROUNDINGS_SAMPLE = 1024  # decisions are made on a sample of this many points
 PLANE_SHARE = 0.2  # a support plane holds at least this share of the points ...

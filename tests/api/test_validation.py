@@ -92,3 +92,26 @@ def test_bad_raw_bodies_are_named(body, words):
     with pytest.raises(InvalidPoints) as caught:
         points_from_raw(body, **LIMITS)
     assert words in str(caught.value)
+
+
+BIG = {"min_points": 4, "max_points": 300_000}
+
+
+def test_a_large_cloud_is_shape_checked_as_a_small_one():
+    """Every k-th point of a large cloud decides; one near a refusal is checked on every point:
+    a line, one place, and a blob whose only other points lie between the sampled ones."""
+    rng = np.random.default_rng(3)
+    line = np.zeros((40_000, 3))
+    line[:, 0] = rng.uniform(0, 1, len(line))
+    place = np.full((40_000, 3), 5.0)
+    place[1::2] += 1e-9  # between the sampled points, no more extent than float32 keeps
+    blob = rng.normal(size=(40_000, 3))
+    for points, words in ((line, "one line"), (place, "(nearly) the same")):
+        with pytest.raises(InvalidPoints) as caught:
+            points_from_raw(points.astype("<f4").tobytes(), **BIG)
+        assert words in str(caught.value)
+    assert points_from_raw(blob.astype("<f4").tobytes(), **BIG).shape == (40_000, 3)
+    # a line except at points the sample skips: the sample sees a line, every point decides
+    nearly = line.copy()
+    nearly[1::5, 1:] = rng.normal(size=(len(nearly[1::5]), 2))
+    assert validate_points(nearly, **BIG).shape == (40_000, 3)

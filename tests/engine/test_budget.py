@@ -1,0 +1,68 @@
+"""What the engine spends on a cloud: a large one is answered from a sample, and a cloud that
+nothing registered fits stops its search early (docs/decisions.md#speed)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from benchmarks.align_http.clouds import resample
+from service.engine.confidence import Calibration
+from service.engine.engine import Engine
+from service.engine.mapping import Mapper
+from service.gallery.gallery_file import load_gallery
+from service.settings import EngineSettings, Settings
+from tests.servers import needs_model
+
+SETTINGS = Settings()
+
+
+@pytest.fixture(scope="module")
+def references():
+    return load_gallery(SETTINGS.model.gallery)[0]
+
+
+def engine_with(references, **settings) -> Engine:
+    calibration = (
+        Calibration.load(SETTINGS.confidence_path) if SETTINGS.confidence_path.exists() else None
+    )
+    chosen = EngineSettings(**{**SETTINGS.engine.model_dump(), **settings})
+    engine = Engine(Mapper(SETTINGS.model.path, use_cuda=False), chosen, calibration)
+    engine.load(references)
+    return engine
+
+
+def posed(reference, count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    rotation = Rotation.random(random_state=rng).as_matrix()
+    points = resample(reference.points, reference.normals, count, rng)
+    return points @ rotation.T + [0.1, -0.2, 0.7], rotation
+
+
+@needs_model
+def test_a_large_cloud_is_answered_from_a_sample_as_a_small_one_is(references):
+    engine = engine_with(references, align_points=4096)
+    reference = references[2]
+    small, rotation = posed(reference, 3000, 1)
+    large, _ = posed(reference, 40_000, 1)
+    large = large @ np.eye(3)  # the same pose, 40,000 points
+    for cloud, expected in ((small, 3000), (large, 4096)):
+        answer = engine.align(cloud)
+        assert answer.points == expected
+        assert answer.label == reference.name
+        turned = Rotation.from_matrix(answer.rotation @ rotation.T).magnitude()
+        assert np.degrees(turned) < 5 or answer.alike  # a symmetric part may turn
+
+
+@needs_model
+def test_a_cloud_nothing_fits_stops_before_the_mapped_pairs_and_the_finish(references):
+    turns = np.linspace(0, 30, 2048)  # a coiled wire: nothing registered is one
+    junk = np.stack([0.03 * np.cos(turns), 0.03 * np.sin(turns), 0.003 * turns], axis=1)
+    junk += np.random.default_rng(4).normal(scale=0.001, size=junk.shape) + [0, 0, 0.8]
+    stopping = engine_with(references, hopeless=0.3).align(junk)
+    going_on = engine_with(references, hopeless=0.0).align(junk)
+    assert going_on.fit * going_on.coverage < 0.3  # hopeless, wherever the search went
+    assert stopping.verdict != "match" and going_on.verdict != "match"
+    assert "flips" in going_on.timings_ms
+    assert "flips" not in stopping.timings_ms and "near-symmetries" not in stopping.timings_ms
