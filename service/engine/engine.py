@@ -461,7 +461,8 @@ class Engine:
         what the mapped pairs would add does not make a "match" of it."""
         if next_pass != self._mapped_pairs or not self.settings.hopeless:
             return False
-        return max((f.score for f in fits if f.refined), default=0.0) < self.settings.hopeless
+        refined = [f.score for f in fits if f.refined]  # none: nothing to judge it by
+        return bool(refined) and max(refined) < self.settings.hopeless
 
     def _whole_part(self, query: Query, observed: Observed, ranking: Ranking) -> Plan | None:
         """The shortlist's whole-part hypotheses (principal axes): what a full cloud needs."""

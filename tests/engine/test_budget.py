@@ -66,3 +66,15 @@ def test_a_cloud_nothing_fits_stops_before_the_mapped_pairs_and_the_finish(refer
     assert stopping.verdict != "match" and going_on.verdict != "match"
     assert "flips" in going_on.timings_ms
     assert "flips" not in stopping.timings_ms and "near-symmetries" not in stopping.timings_ms
+
+
+@needs_model
+def test_a_search_of_the_mapped_pairs_alone_is_never_hopeless_before_it_starts(references):
+    """Nothing refined before the mapped pairs (the paper's own hypotheses alone): the
+    search goes on to them rather than stop at nothing."""
+    engine = engine_with(references, hypotheses=("mapped",), hopeless=0.3)
+    reference = references[2]
+    cloud, _ = posed(reference, 2048, 5)
+    answer = engine.align(cloud)
+    assert answer.label == reference.name and answer.hypothesis == "mapped"
+    assert answer.fit * answer.coverage > 0.3
