@@ -24,7 +24,9 @@ class ModelSettings(BaseModel):
     confidence: Path | None = None  # default: confidence.json beside the model file
     # POST /detect's detections; default: detect_confidence.json beside the model file
     detect_confidence: Path | None = None
-    intra_op_threads: int = Field(2, ge=1)
+    # onnxruntime's threads for one forward: a second spins while it waits and takes the core
+    # from the other alignment's Python (docs/decisions.md#at-camera-scale)
+    intra_op_threads: int = Field(1, ge=1)
     inter_op_threads: int = Field(1, ge=1)
     # threads of numpy's and scipy's BLAS (OpenBLAS) in the process: its idle workers spin
     # and took the cores from onnxruntime's (``service.engine.mapping.limit_blas``)

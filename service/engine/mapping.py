@@ -45,7 +45,7 @@ class Mapper:
     def __init__(
         self,
         path: Path,
-        intra_op_threads: int = 2,
+        intra_op_threads: int = 1,
         inter_op_threads: int = 1,
         use_cuda: bool = True,
         model_hash: str | None = None,  # when the caller has already read the file
