@@ -62,8 +62,11 @@ class EngineSettings(BaseModel):
     accept: float | None = Field(None, ge=0, le=1)
     reject_below: float = Field(0.2, ge=0, le=1)  # below it "no_match", else "uncertain"
     # after the single views, a best refined fit x coverage under this ends the search: no
-    # mapped pairs, no flips or near-symmetries (docs/decisions.md#speed); 0: never
+    # mapped pairs, no flips or near-symmetries (docs/decisions.md#at-camera-scale); 0: never
     hopeless: float = Field(0.3, ge=0, le=1)
+    # the mapped pairs are searched only after single views whose best refined fit x coverage
+    # reaches this (docs/decisions.md#at-camera-scale); 0: always
+    mapped_from: float = Field(0.7, ge=0, le=1)
     refine_best: int = Field(4, ge=1)  # hypotheses refined with ICP (at most 2 a part)
     icp_iterations: int = Field(12, ge=1)
     # when no refined hypothesis fits well, the best two of this many more parts are refined

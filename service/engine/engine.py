@@ -457,12 +457,14 @@ class Engine:
 
     def _hopeless(self, fits: list[Fit], next_pass) -> bool:
         """Whether the search stops before the mapped pairs: after the single views, no
-        refined fit reaches ``settings.hopeless`` (fit x coverage). Another part, or none:
-        what the mapped pairs would add does not make a "match" of it."""
-        if next_pass != self._mapped_pairs or not self.settings.hopeless:
+        refined fit reaches ``settings.hopeless``, or ``settings.mapped_from`` (fit x
+        coverage). Another part, or none: what the mapped pairs would add does not make a
+        "match" of it (docs/decisions.md#at-camera-scale)."""
+        floor = max(self.settings.hopeless, self.settings.mapped_from)
+        if next_pass != self._mapped_pairs or not floor:
             return False
         refined = [f.score for f in fits if f.refined]  # none: nothing to judge it by
-        return bool(refined) and max(refined) < self.settings.hopeless
+        return bool(refined) and max(refined) < floor
 
     def _whole_part(self, query: Query, observed: Observed, ranking: Ranking) -> Plan | None:
         """The shortlist's whole-part hypotheses (principal axes): what a full cloud needs."""

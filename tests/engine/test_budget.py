@@ -78,3 +78,26 @@ def test_a_search_of_the_mapped_pairs_alone_is_never_hopeless_before_it_starts(r
     answer = engine.align(cloud)
     assert answer.label == reference.name and answer.hypothesis == "mapped"
     assert answer.fit * answer.coverage > 0.3
+
+
+@needs_model
+def test_the_mapped_pairs_follow_single_views_that_fit_well_enough(references):
+    """A cloud whose single views fit it under ``mapped_from``: the search does not go on to
+    the mapped pairs (no refined fit of theirs); with 0 it does."""
+    from service.engine.grid import grid
+    from service.engine.search import Search
+
+    rng = np.random.default_rng(8)
+    blob = rng.normal(size=(2048, 3)) * [0.04, 0.03, 0.02] + [0, 0, 0.8]  # no registered part
+    sources = {}
+    for floor in (0.0, 0.99):
+        engine = engine_with(references, mapped_from=floor, hopeless=0.01)
+        query = engine.query(None, None, True, None, None)
+        observed = engine.normalise(query, engine.set_aside(query, blob)[0])
+        observed.mapped = engine.map(observed.points)
+        observed.grid = grid(observed.mapped)
+        ranking = engine.classify(query, observed)
+        fits = engine.search(query, observed, ranking, Search(engine.settings, query, observed))
+        assert max(f.score for f in fits if f.refined) < 0.99  # not excellent: a third pass
+        sources[floor] = {f.source for f in fits if f.refined}
+    assert "mapped" in sources[0.0] and "mapped" not in sources[0.99]
