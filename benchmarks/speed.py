@@ -47,12 +47,14 @@ from service.api.startup import load_calibration
 from service.engine.engine import Engine
 from service.engine.mapping import Mapper
 from service.engine.normalize import normalize, subsample
+from service.engine.reference import Reference
 from service.gallery.gallery_file import load_gallery
 from service.settings import Settings
 
 BASE = 40  # the served gallery: the first 40 shipped references; the rest are never registered
 KINDS = ("answer", "refusal")
-LARGE = tuple(f"{size:,} points" for size in (8_000, 33_000, 131_000, 200_000))
+LARGE_SIZES = (8_000, 33_000, 131_000, 200_000)  # the large clouds' points
+LARGE = tuple(f"{size:,} points" for size in LARGE_SIZES)
 TARGETS = {  # the issue's, each a ratio
     "answer / forward": ("<=", 8.0),
     "refusal / answer": ("<=", 1.5),
@@ -93,28 +95,27 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def forward_ms(mapper: Mapper, points: np.ndarray, count: int, seed: int) -> dict:
-    """The network alone on 1,024 normalised points of ``points``, in this process:
-    ``Mapper.map``, onnxruntime's run and nothing else of the chain."""
+    """The network alone on 1,024 normalised points of ``points``, in this process, on the
+    session ``/align`` uses: ``Mapper.map``, onnxruntime's run and nothing else of the chain."""
     rng = np.random.default_rng(seed)
     cloud = normalize(points[subsample(points, 1024, rng)], mapper.canonical).points
     times = []
     for index in range(count + 20):
         began = time.perf_counter()
-        mapper.map(cloud, quiet=True)
+        mapper.map(cloud)
         if index >= 20:
             times.append((time.perf_counter() - began) * 1e3)
     return latency_stats(times, ("count", "median_ms", "p95_ms", "min_ms"))
 
 
-def bodies(shipped, seed: int) -> dict[str, list[Cloud]]:
+def bodies(shipped: list[Reference], seed: int) -> dict[str, list[Cloud]]:
     """The requests: 2,048-point answers and refusals, and the large clouds."""
     served, left_out = shipped[:BASE], shipped[BASE:]
     made = {
         "answer": make_clouds(served, 2, seed),
         "refusal": make_clouds(left_out, 8, seed + 1),
     }
-    for kind in LARGE:  # a cloud each of 8 parts
-        size = int(kind.split()[0].replace(",", ""))
+    for kind, size in zip(LARGE, LARGE_SIZES, strict=True):  # a cloud each of 8 parts
         made[kind] = make_clouds(served[:: BASE // 8], 1, seed + 2, size)
     return made
 
