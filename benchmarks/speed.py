@@ -40,9 +40,9 @@ import onnxruntime as ort
 
 from benchmarks.align_http.clouds import RAW_TYPE, Cloud, make_clouds
 from benchmarks.align_http.padding import padding_references
-from benchmarks.align_http.timing import concurrent, step_medians
+from benchmarks.align_http.timing import concurrent, serve, step_medians
 from evaluation.latency import latency_stats
-from evaluation.served import ServiceProcess, seed_store
+from evaluation.served import seed_store
 from service.api.startup import load_calibration
 from service.engine.engine import Engine
 from service.engine.mapping import Mapper
@@ -159,22 +159,6 @@ def summary(kind: str, answered: list[tuple[float, dict, Cloud]]) -> dict:
     }
 
 
-def serve(data_dir: Path, args: argparse.Namespace, provider: str) -> ServiceProcess:
-    """The service on the benchmark's model, open; ``DPC_*`` variables of this environment
-    (engine settings) reach it."""
-    return ServiceProcess(
-        data_dir / "service.log",
-        args.ready_timeout,
-        inherit=True,
-        gallery__data_dir=str(data_dir),
-        model__path=str(args.model),
-        model__gallery=str(args.gallery),
-        model__use_cuda=str(provider == "cuda").lower(),
-        server__log_level="warning",
-        auth__keys="{}",
-    )
-
-
 def measure(
     args: argparse.Namespace,
     provider: str,
@@ -238,25 +222,24 @@ def run(args: argparse.Namespace) -> dict:
         "targets": TARGETS,
         "runs": [],
     }
+    model = settings.model
+    mappers = {
+        provider: Mapper(
+            args.model,
+            model.intra_op_threads,
+            model.inter_op_threads,
+            provider == "cuda",
+            blas_threads=model.blas_threads,
+        )
+        for provider in args.providers
+    }
+    engine = Engine(mappers[args.providers[0]], settings.engine, load_calibration(settings))
+    padding, _, _ = padding_references(
+        engine, shipped, max(args.references) - BASE, args.padding_cache, args.padding_workers
+    )
+    galleries = {size: (shipped[:BASE] + padding)[:size] for size in args.references}
     with tempfile.TemporaryDirectory(prefix="dpc-speed-") as tmp:
-        for provider in args.providers:
-            model = settings.model
-            mapper = Mapper(
-                args.model,
-                model.intra_op_threads,
-                model.inter_op_threads,
-                provider == "cuda",
-                blas_threads=model.blas_threads,
-            )
-            engine = Engine(mapper, settings.engine, load_calibration(settings))
-            padding, _, _ = padding_references(
-                engine,
-                shipped,
-                max(args.references) - BASE,
-                args.padding_cache,
-                args.padding_workers,
-            )
-            galleries = {size: (shipped[:BASE] + padding)[:size] for size in args.references}
+        for provider, mapper in mappers.items():
             forward = forward_ms(mapper, shipped[0].points, args.forwards, args.seed)
             print(f"[{provider}] forward on 1,024 points: {forward['median_ms']:.2f} ms")
             figures = measure(args, provider, galleries, made, mapper.model_hash, Path(tmp))

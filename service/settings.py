@@ -36,7 +36,7 @@ class ModelSettings(BaseModel):
 
 class EngineSettings(BaseModel):
     # a cloud of more points is answered from a random sample of this many: the cost stays flat
-    # in the cloud's size (docs/decisions.md#speed)
+    # in the cloud's size (docs/decisions.md#at-camera-scale)
     align_points: int = Field(8192, ge=1024)
     network_points: int = Field(1024, ge=64)  # the observation is subsampled to this many points
     top_k: int = Field(3, ge=1)  # candidates eq. (4) proposes for geometric verification

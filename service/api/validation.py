@@ -126,7 +126,8 @@ def _check_values(array: np.ndarray) -> np.ndarray:
     return points
 
 
-# The shape checks look at every k-th point of a larger cloud (docs/decisions.md#speed); a
+# The shape checks look at every k-th point of a larger cloud (docs/decisions.md#at-camera-scale);
+# a
 # cloud this close to a refusal on the sample is checked on every point
 SHAPE_SAMPLE = 8192
 SHAPE_MARGIN = 10.0

@@ -355,7 +355,7 @@ class Engine:
         whole = len(scene)
         if whole > (most := self.settings.align_points):  # a sample answers as the whole would
             scene = scene[subsample(scene, most, np.random.default_rng(self.settings.seed))]
-        scene = scene.astype(np.float64)  # the sample's points alone
+        scene = np.asarray(scene, dtype=np.float64)  # the sample's points alone
         if surroundings:
             readings = self.set_aside(query, scene)  # 0
         else:
