@@ -103,3 +103,71 @@ def cast(
     distance, directions, mesh_index = distance[hit], directions[hit], mesh_index[hit]
     measured = distance * (1.0 + noise_share * rng.normal(size=distance.shape))
     return DepthPoints(directions * measured[:, None], mesh_index, distance)
+
+
+# --- sensor profiles (the calibration's corpus, evaluation.calibration_corpus) ----------------
+
+
+@dataclass(frozen=True)
+class SensorProfile:
+    """What a kind of depth camera does to the true distances, beside its noise along the ray.
+
+    ``step``: depth quantised to this (metres, 0: none); at depth jumps (more than ``jump``
+    metres between neighbouring pixels) ``jump_drop`` of the pixels are missing, as
+    structured-light and stereo cameras drop them; ``flying``: the share of the pixels on a
+    part's outline smeared back along their ray by up to ``smear`` metres (a time-of-flight
+    camera's mixed pixels); ``dropout``: the share of all pixels missing at random."""
+
+    name: str
+    noise_share: float = DEPTH_NOISE_SHARE
+    step: float = 0.0
+    jump: float = 0.02
+    jump_drop: float = 0.0
+    flying: float = 0.0
+    smear: float = 0.03
+    dropout: float = 0.0
+
+
+PROFILES = {
+    "sensor": SensorProfile("sensor"),  # the evaluation's sensor family
+    "camera": SensorProfile("camera", step=0.001, jump_drop=0.5),  # the frames' effects
+    "tof": SensorProfile("tof", 0.005, 0.001, 0.02, 0.5, flying=0.3, dropout=0.05),
+}
+
+
+def cast_profiled(
+    meshes: list[trimesh.Trimesh],
+    rng: np.random.Generator,
+    profile: SensorProfile,
+    camera: Camera = DEFAULT_CAMERA,
+) -> DepthPoints:
+    """Like ``cast``, with ``profile``'s effects worked on the whole pixel grid."""
+    directions = camera.rays()
+    distance, mesh_index = cast_rays(meshes, directions)
+    measured = distance * (1.0 + profile.noise_share * rng.normal(size=distance.shape))
+    z = measured * directions[:, 2]
+    if profile.step:
+        z = np.round(z / profile.step) * profile.step
+    depth = np.where(np.isfinite(z), z, np.nan).reshape(camera.height, camera.width)
+    missing = np.zeros(depth.shape, dtype=bool)
+    valid = np.isfinite(depth)
+    jump, outline = np.zeros_like(missing), np.zeros_like(missing)
+    with np.errstate(invalid="ignore"):
+        for axis in (0, 1):
+            step = np.abs(np.diff(depth, axis=axis)) > profile.jump
+            gap = np.diff(valid.astype(np.int8), axis=axis) != 0
+            ahead = [slice(None)] * 2
+            behind = [slice(None)] * 2
+            ahead[axis], behind[axis] = slice(1, None), slice(None, -1)
+            for side in (tuple(ahead), tuple(behind)):
+                jump[side] |= step
+                outline[side] |= gap
+    missing |= jump & (rng.random(depth.shape) < profile.jump_drop)
+    missing |= rng.random(depth.shape) < profile.dropout
+    flying = (outline | jump) & valid & (rng.random(depth.shape) < profile.flying)
+    depth[flying] += rng.uniform(0.0, profile.smear, size=int(flying.sum()))
+    depth[missing] = np.nan
+    depth = depth.ravel()
+    keep = np.isfinite(depth)
+    points = directions[keep] * (depth[keep] / directions[keep, 2])[:, None]
+    return DepthPoints(points, mesh_index[keep], distance[keep])

@@ -22,13 +22,21 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from evaluation.camera import DEFAULT_CAMERA, DEPTH_NOISE_SHARE, Camera, cast
+from evaluation.camera import (
+    DEFAULT_CAMERA,
+    DEPTH_NOISE_SHARE,
+    Camera,
+    SensorProfile,
+    cast,
+    cast_profiled,
+)
 from service.engine.normalize import radius
 from service.engine.sampling import sample_surface
 
 VIEWPOINT = (0.0, 0.0, 0.0)  # the camera's position in its own frame
 TABLE_ELEVATION_DEG = (30.0, 60.0)  # table: the camera looks down at this angle to the table
 TABLE_HALF_SIDE_SCALES = 3.0  # table: a square this many scales each side of the part
+BIN_HALF_SCALES = 1.6  # a bin's walls stand this many scales each side of its part
 CROP_SCALES = 2.5  # table: keep what lies within this many scales of the part's centre
 STRAY_SHARE = 0.02  # table: stray points, as a share of the cropped cloud
 STRAY_MARGIN_SCALES = 1.0  # ... uniform in the cloud's bounding box grown by this many scales
@@ -170,6 +178,8 @@ def table_scene(
     camera: Camera = DEFAULT_CAMERA,
     distance_scales: tuple[float, float] = (4.0, 8.0),
     noise_share: float = DEPTH_NOISE_SHARE,
+    profile: SensorProfile | None = None,
+    walls: float = 0.0,
 ) -> TableScene:
     """The part resting on a table in a stable pose (``poses``: ``stable_poses(mesh)``,
     computed when None), seen by ``camera`` from 4-8 scales away, looking down at 30-60° to
@@ -177,7 +187,9 @@ def table_scene(
     the table are ray cast; the cloud is cropped to ``CROP_SCALES`` scales around the part's
     centre, and ``STRAY_SHARE`` of stray points are added in its bounding box grown by
     ``STRAY_MARGIN_SCALES`` scales; then shuffled. ``scale`` is the part's (its reference's
-    radius)."""
+    radius). With a ``profile``, the camera is that profile's (``noise_share`` unused); with
+    ``walls``, the part lies in a bin: four walls that many scales high, ``BIN_HALF_SCALES``
+    each side of it."""
     poses = stable_poses(mesh) if poses is None else poses
     rest_rotation, rest_translation = resting_pose(mesh, poses, rng)
     centre_on_table = rest_rotation @ surface_centroid(mesh) + rest_translation
@@ -192,8 +204,13 @@ def table_scene(
     half = TABLE_HALF_SIDE_SCALES * scale
     table = trimesh.creation.box((2 * half, 2 * half, 1e-3 * scale))
     table.apply_translation([centre_on_table[0], centre_on_table[1], -0.5e-3 * scale])
-    table = placed(table, to_camera, -to_camera @ position)
-    seen = cast([placed(mesh, rotation, translation), table], rng, camera, noise_share)
+    supports = [table] + bin_walls(centre_on_table, scale, walls)
+    supports = [placed(support, to_camera, -to_camera @ position) for support in supports]
+    meshes = [placed(mesh, rotation, translation), *supports]
+    if profile is None:
+        seen = cast(meshes, rng, camera, noise_share)
+    else:
+        seen = cast_profiled(meshes, rng, profile, camera)
 
     centre = rotation @ surface_centroid(mesh) + translation
     near = np.linalg.norm(seen.points - centre, axis=1) <= CROP_SCALES * scale
@@ -215,6 +232,24 @@ def table_scene(
         source=source[order],
         plane=plane,
     )
+
+
+def bin_walls(centre: np.ndarray, scale: float, height_scales: float) -> list[trimesh.Trimesh]:
+    """Four walls ``height_scales`` scales high round ``centre`` on the table (z = 0), each
+    ``BIN_HALF_SCALES`` scales from it; none for a height of 0."""
+    if height_scales <= 0:
+        return []
+    half, height, thick = BIN_HALF_SCALES * scale, height_scales * scale, 0.05 * scale
+    walls = []
+    for axis, side in ((0, -1), (0, 1), (1, -1), (1, 1)):
+        extents = [2 * half, 2 * half, height]
+        extents[axis] = thick
+        wall = trimesh.creation.box(extents)
+        offset = np.array([centre[0], centre[1], height / 2])
+        offset[axis] += side * half
+        wall.apply_translation(offset)
+        walls.append(wall)
+    return walls
 
 
 # --- no part at all --------------------------------------------------------------------------
