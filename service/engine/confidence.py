@@ -11,10 +11,15 @@ logistic regression over a few measures of the answer, each in units of the part
   that places the part within ``search.RIGHT_EITHER_WAY`` of the answer's, by which the
   answer would still be precise, does not count);
 - ``points``: log10 of the number of observed points;
-- ``size``: log of the observed radius over the part's scale.
+- ``size``: log of the observed radius over the part's scale;
+- ``misfit`` and ``missed``: log10 of the share of points off the surface and of the view
+  missed (each plus 0.01), so that 99 % against 95 % weighs as much as 80 % against 0 %;
+- ``told``: 1 when the request gave the viewpoint.
 
-Its weights are fitted on the evaluation's cases of the objects the model was trained on and
-checked on parts it never saw (``python -m evaluation.calibrate``), and shipped beside the model
+Its weights are fitted on parts nobody trained or tuned on, in groups (pybullet_data's other
+meshes under several sensor profiles, on tables and in bins), beside the model's own parts, and
+checked on each group held out in turn and on the evaluation's unseen parts (``python -m
+evaluation.calibrate``; docs/decisions.md#calibration-that-transfers); shipped beside the model
 as ``confidence.json``. The verdict follows: ``match`` at or above the acceptance threshold
 (the request's ``min_confidence``, else the setting ``engine.accept``, else the calibration's
 own: the lowest at which 99.5 % of the accepted answers it was fitted on were right),
@@ -30,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-FEATURES = ("fit", "coverage", "margin", "alike", "points", "size")
+FEATURES = ("fit", "coverage", "margin", "alike", "points", "size", "misfit", "missed", "told")
 # a detection in a whole frame (``Engine.detect``): the chain's confidence for its points, and
 # what the frame says of its pose (``scene.evidence``)
 SCENE_FEATURES = ("chain", "fit", "coverage", "margin", "seen", "through", "explained", "points")
@@ -81,9 +86,16 @@ class Calibration:
 
 
 def measures(
-    fit: float, coverage: float, runner_up: float, alike: float, points: int, size_ratio: float
+    fit: float,
+    coverage: float,
+    runner_up: float,
+    alike: float,
+    points: int,
+    size_ratio: float,
+    told: bool = False,
 ) -> dict[str, float]:
-    """The features of one answer (see the module's docstring)."""
+    """The features of one answer (see the module's docstring); ``told``: the request gave
+    the viewpoint."""
     score = fit * coverage
     return {
         "fit": fit,
@@ -92,6 +104,9 @@ def measures(
         "alike": alike / score if score > 0 else 0.0,
         "points": float(np.log10(max(points, 1))),
         "size": float(np.log(max(size_ratio, 1e-9))),
+        "misfit": float(np.log10(1.0 - fit + 0.01)),
+        "missed": float(np.log10(1.0 - coverage + 0.01)),
+        "told": 1.0 if told else 0.0,
     }
 
 

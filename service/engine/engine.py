@@ -632,6 +632,7 @@ class Engine:
             answer.alike,
             answer.points,
             answer.size_ratio,
+            query.viewpoint is not None,
         )
         if self.calibration is None:
             answer.verdict, answer.confidence = "uncertain", None
