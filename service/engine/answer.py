@@ -54,6 +54,7 @@ class Alignment:
     size_ratio: float = 1.0  # the observed radius over the part's scale
     points: int = 0  # observed points the answer rests on
     look_alikes: list[str] = field(default_factory=list)  # parts that fit alike, no view tells
+    closest: AlternativePose | None = None  # the other pose of the part that ``alike`` measures
 
 
 @dataclass

@@ -512,7 +512,7 @@ class Engine:
             (f for f in fits if f.row != winner.row), key=lambda f: f.score, default=None
         )
         runner_label = None if runner_up is None else snapshot.classifier.labels[runner_up.row]
-        alike, alternatives = self._alike(entry, fits)
+        alike, alternatives, closest = self._alike(entry, fits)
         look_alikes = self._look_alike_fits(query, search, fits, winner)
         parts = self._look_alike_poses(query, look_alikes)
         query.clock.lap("decide")
@@ -537,6 +537,7 @@ class Engine:
             size_ratio=observed.size / entry.reference.scale,
             points=len(observed.scene),
             look_alikes=[other for other, _ in look_alikes],
+            closest=closest,
         )
 
     @staticmethod
@@ -599,22 +600,24 @@ class Engine:
         return max(mine, key=lambda f: f.score)
 
     @staticmethod
-    def _alike(entry: Entry, fits: list[Fit]) -> tuple[float, list[AlternativePose]]:
+    def _alike(
+        entry: Entry, fits: list[Fit]
+    ) -> tuple[float, list[AlternativePose], AlternativePose | None]:
         """How well the best other refined pose of the winner's part fits (0 when none lies
-        ``RIGHT_EITHER_WAY`` or farther from it), and those that fit alike as alternatives:
-        poses more than ``DIFFERENT_DEG`` apart, symmetry accounted for."""
-        winner, alike, alternatives = fits[0], 0.0, []
+        ``RIGHT_EITHER_WAY`` or farther from it) and that pose; and those that fit alike as
+        alternatives: poses more than ``DIFFERENT_DEG`` apart, symmetry accounted for."""
+        winner, alike, alternatives, closest = fits[0], 0.0, [], None
         for other in fits[1:]:
             if other.row != winner.row or not other.refined:
                 continue
             if entry.symmetry.distance_deg(other.rotation, winner.rotation) <= DIFFERENT_DEG:
                 continue
+            pose = entry.symmetry.canonical(other.rotation, other.translation)
             if other.score > alike and entry.gap(winner, other) >= RIGHT_EITHER_WAY:
-                alike = other.score
+                alike, closest = other.score, AlternativePose(*pose, confidence=0.0)
             if other.score >= ALIKE * winner.score and len(alternatives) < MAX_ALTERNATIVES:
-                pose = entry.symmetry.canonical(other.rotation, other.translation)
                 alternatives.append(AlternativePose(*pose, confidence=0.0))
-        return alike, alternatives
+        return alike, alternatives, closest
 
     def judge(
         self, answer: Alignment, min_confidence: float | None, query: Query, flat: float
@@ -645,6 +648,7 @@ class Engine:
             if answer.confidence >= threshold and not one_face:
                 answer.verdict, answer.reasons = "match", []
                 return
+            self._two_poses(answer, values, threshold)
             low = answer.confidence < self.settings.reject_below
             answer.verdict = "no_match" if low else "uncertain"
             reasons = []
@@ -653,6 +657,18 @@ class Engine:
                     f"the confidence {answer.confidence:.2f} is below the threshold {threshold:.2f}"
                 )
         answer.reasons = reasons + self._doubts(answer, values, one_face, flat, query)
+
+    def _two_poses(self, answer: Alignment, values: dict, threshold: float) -> None:
+        """A refused answer that only the other pose it was measured against (``alike``)
+        keeps from a "match": the view cannot tell the two apart, so that pose is listed as an
+        alternative and the answer is ``ambiguous`` (docs/decisions.md#two-poses)."""
+        closest = answer.closest
+        if closest is None or answer.ambiguous:
+            return
+        if self.calibration.confidence(values | {"alike": 0.0}) >= threshold:
+            closest.confidence = answer.confidence
+            answer.alternatives.insert(0, closest)
+            answer.ambiguous = True
 
     def _threshold(self, min_confidence: float | None) -> float:
         """The confidence of a "match": the request's, else the setting's, else the

@@ -524,3 +524,25 @@ def test_another_pose_that_would_be_right_too_does_not_lower_the_confidence(engi
         turned = Fit(0, other.rotation, other.translation, "", -1, 1, 1)
         assert entry.gap(winner, turned) < RIGHT_EITHER_WAY
     assert found.alike < ALIKE * found.fit * found.coverage
+
+
+@needs_model
+@needs_calibration
+def test_a_view_that_cannot_tell_two_poses_apart_is_ambiguous_not_a_bare_uncertain(engine):
+    """The diff stand's depth view (the calibration's seed 7) fits its answered pose and
+    another alike: only that other pose keeps it from a "match", so it is listed."""
+    pytest.importorskip("open3d", exc_type=ImportError)
+    from evaluation.cases import make_cases
+    from training.objects import load_manifest, load_object_meshes
+
+    meshes = load_object_meshes([s for s in load_manifest() if s.name == "diff-stand"])
+    scales = {"diff-stand": engine.get("diff-stand").scale}
+    cases = make_cases("sensor", meshes, scales, 2048, 7, 4)
+    case = max(cases, key=lambda c: c.params["distance_scales"])  # the farthest: 7.9 scales
+    answer = engine.align(case.points, viewpoint=np.asarray(case.params["viewpoint"]))
+    assert answer.verdict == "uncertain" and answer.ambiguous
+    assert right(engine, "diff-stand", answer, case.rotation, case.translation)
+    assert [a.confidence for a in answer.alternatives] == [answer.confidence]
+    other = answer.alternatives[0]
+    assert geodesic_deg(other.rotation, answer.rotation) > 5  # another pose, not a nudge
+    assert any("fit alike" in reason for reason in answer.reasons)
