@@ -36,10 +36,10 @@ from scipy.optimize import minimize
 from tqdm import tqdm
 
 from evaluation.calibration_corpus import PER_GROUP, corpus_rows
-from evaluation.cases import FOREIGN, NO_MATCH, Case, make_cases
+from evaluation.calibration_corpus import row as corpus_row
+from evaluation.cases import FOREIGN, Case, make_cases
 from evaluation.evaluate_mapping import prepare_engine
-from evaluation.metrics import auroc, expected_calibration_error, succeeds
-from service.engine import confidence
+from evaluation.metrics import auroc, expected_calibration_error
 from service.engine.confidence import FEATURES, Calibration
 from service.engine.engine import Engine
 from service.engine.mapping import file_sha256
@@ -63,36 +63,12 @@ def cases_of(meshes: dict, scales: dict[str, float], per_object: int, seed: int)
 
 
 def answer(engine: Engine, case: Case, viewpoint: bool, leave_out: bool) -> dict | None:
-    """The measures of the engine's answer to one case and whether it was right."""
-    names = engine.names()
-    candidates = [n for n in names if n != case.object_name] if leave_out else None
-    seen_from = case.params.get("viewpoint") if viewpoint else None
-    found = engine.align(
-        case.points,
-        candidates=candidates,
-        viewpoint=None if seen_from is None else np.asarray(seen_from),
-    )
-    if found.verdict == "no_match" and found.hypothesis == "none":
-        return None  # refused by size before any search
-    right = False
-    if not leave_out and case.params.get("expected") not in (NO_MATCH, None):
-        right = found.label == case.object_name and succeeds(
-            engine.get(case.object_name).points,
-            found.rotation,
-            found.translation,
-            case.rotation,
-            case.translation,
-        )
-    values = confidence.measures(
-        found.fit,
-        found.coverage,
-        found.runner_up,
-        found.alike,
-        found.points,
-        found.size_ratio,
-        seen_from is not None,
-    )
-    return {"family": case.family, "right": right, "viewpoint": viewpoint} | values
+    """The measures of the engine's answer to one case and whether it was right
+    (``calibration_corpus.row``, the case's part its own truth)."""
+    reference = engine.get(case.object_name)
+    truth = None if reference is None else reference.points
+    found = corpus_row(engine, case, viewpoint, leave_out, truth)
+    return None if found is None else found | {"family": case.family}
 
 
 def collect(engine: Engine, cases: list[Case], desc: str) -> list[dict]:
