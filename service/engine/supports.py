@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from service.engine.frame import Frame
 from service.engine.normalize import subsample
@@ -25,12 +26,14 @@ from service.engine.tuning import (
     PLANE_ITERATIONS,
     SENSOR_NOISE,
     SUPPORT_CELLS,
+    SUPPORT_CONNECTED,
     SUPPORT_NOISE,
     SUPPORT_REACH,
     SUPPORT_SAMPLE,
     SUPPORT_SHARE,
     SUPPORT_SPACINGS,
     WALL_DEG,
+    WALL_REACH,
 )
 
 
@@ -79,19 +82,24 @@ def set_aside_supports(
         others[rest[on]] = False
         off = np.flatnonzero(others)
         on_plane = frame.points[rest[on]]
-        wide = reach(on_plane, plane) >= largest
+        across = reach(on_plane, plane)
+        # no part's face reaches this far: the table under a bin, whatever lies behind its
+        # cells (a later plane may be parts' faces side by side: it must carry, or be a wall)
+        vast = not supports and across >= SUPPORT_REACH * largest
+        # a later one is one surface, not a slice through a pile's tops (docs/decisions.md#detect)
+        whole = not supports or connected(on_plane, plane, cell) >= SUPPORT_CONNECTED
         wall = (
             bool(supports)
-            and wide
+            and across >= largest
             and is_wall(on_plane, plane, supports[0], largest, tolerance[rest[on]])
         )
         # the first may carry nothing (an empty table); a later one is a wall, or carries
         # something and reaches farther than a part's face could
         least_over = CARRIED_POINTS if supports else 0
-        carrying = (not supports or wide) and carries(
+        carrying = (not supports or across >= largest) and carries(
             on_plane, frame.points[off], plane, cell, least_over
         )
-        if not wall and not carrying:
+        if not whole or not (wall or carrying or vast):
             faces[rest[on]] = True  # a part's face: the next plane may still be a support
             continue
         keep[rest[on]] = False
@@ -134,7 +142,7 @@ def is_wall(
     on_plane: np.ndarray, plane: np.ndarray, floor: Support, largest: float, slack: np.ndarray
 ) -> bool:
     """Whether a plane is a bin's wall: upright on the first support (``WALL_DEG``), standing
-    on it, and reaching along it farther than any part could (``SUPPORT_REACH`` times the
+    on it, and reaching along it farther than any part could (``WALL_REACH`` times the
     largest part's scale). Behind a bin's near wall lies what the bin holds, so ``carries``
     does not tell it from a part's face."""
     upright = abs(float(plane[:3] @ floor.plane[:3])) < np.sin(np.radians(WALL_DEG))
@@ -143,7 +151,22 @@ def is_wall(
     height = on_plane @ floor.plane[:3] - floor.plane[3]
     if np.min(height - slack) > 0:
         return False
-    return reach(on_plane, plane) >= SUPPORT_REACH * largest
+    return reach(on_plane, plane) >= WALL_REACH * largest
+
+
+def connected(on_plane: np.ndarray, plane: np.ndarray, cell: float) -> float:
+    """The share of the cells a plane's points occupy (``cell`` wide) that lie in its largest
+    patch of neighbouring cells: near 1 for a table or a bin's floor (the parts on it are
+    islands), low for a plane through the tops of parts lying side by side (strips)."""
+    cells = np.floor(on_plane @ in_plane(plane[:3]) / cell).astype(np.int64)
+    cells -= cells.min(axis=0)
+    grid = np.zeros(cells.max(axis=0) + 1, dtype=bool)
+    grid[cells[:, 0], cells[:, 1]] = True
+    labels, count = ndimage.label(grid, structure=np.ones((3, 3)))
+    if count == 0:
+        return 0.0
+    sizes = np.bincount(labels.ravel())[1:]
+    return float(sizes.max() / sizes.sum())
 
 
 def reach(on_plane: np.ndarray, plane: np.ndarray) -> float:
