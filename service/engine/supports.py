@@ -83,23 +83,25 @@ def set_aside_supports(
         off = np.flatnonzero(others)
         on_plane = frame.points[rest[on]]
         across = reach(on_plane, plane)
+        wide = across >= largest
         # no part's face reaches this far: the table under a bin, whatever lies behind its
         # cells (a later plane may be parts' faces side by side: it must carry, or be a wall)
         vast = not supports and across >= SUPPORT_REACH * largest
-        # a later one is one surface, not a slice through a pile's tops (docs/decisions.md#detect)
-        whole = not supports or connected(on_plane, plane, cell) >= SUPPORT_CONNECTED
         wall = (
             bool(supports)
-            and across >= largest
-            and is_wall(on_plane, plane, supports[0], largest, tolerance[rest[on]])
+            and wide
+            and is_wall(on_plane, plane, supports[0], across, largest, tolerance[rest[on]])
         )
         # the first may carry nothing (an empty table); a later one is a wall, or carries
         # something and reaches farther than a part's face could
         least_over = CARRIED_POINTS if supports else 0
-        carrying = (not supports or across >= largest) and carries(
+        carrying = (not supports or wide) and carries(
             on_plane, frame.points[off], plane, cell, least_over
         )
-        if not whole or not (wall or carrying or vast):
+        support = wall or carrying or vast
+        if support and supports:  # one surface, not a slice through a pile's tops
+            support = connected(on_plane, plane, cell) >= SUPPORT_CONNECTED  # decisions.md#detect
+        if not support:
             faces[rest[on]] = True  # a part's face: the next plane may still be a support
             continue
         keep[rest[on]] = False
@@ -122,12 +124,7 @@ def carries(
     face."""
     if not len(others):
         return least == 0
-    axes = in_plane(plane[:3])
-    mine = np.floor(on_plane @ axes / cell).astype(np.int64)
-    low = mine.min(axis=0)
-    mine -= low
-    occupied = np.zeros(mine.max(axis=0) + 1, dtype=bool)
-    occupied[mine[:, 0], mine[:, 1]] = True
+    occupied, axes, low = cell_grid(on_plane, plane, cell)
     cells = np.floor(others @ axes / cell).astype(np.int64) - low
     inside = np.all((cells >= 0) & (cells < occupied.shape), axis=1)
     over = np.zeros(len(others), dtype=bool)
@@ -139,29 +136,45 @@ def carries(
 
 
 def is_wall(
-    on_plane: np.ndarray, plane: np.ndarray, floor: Support, largest: float, slack: np.ndarray
+    on_plane: np.ndarray,
+    plane: np.ndarray,
+    floor: Support,
+    across: float,
+    largest: float,
+    slack: np.ndarray,
 ) -> bool:
     """Whether a plane is a bin's wall: upright on the first support (``WALL_DEG``), standing
-    on it, and reaching along it farther than any part could (``WALL_REACH`` times the
-    largest part's scale). Behind a bin's near wall lies what the bin holds, so ``carries``
-    does not tell it from a part's face."""
+    on it, and reaching along it (``across``: its ``reach``) farther than any part could
+    (``WALL_REACH`` times the largest part's scale). Behind a bin's near wall lies what the
+    bin holds, so ``carries`` does not tell it from a part's face."""
     upright = abs(float(plane[:3] @ floor.plane[:3])) < np.sin(np.radians(WALL_DEG))
     if not upright:
         return False
     height = on_plane @ floor.plane[:3] - floor.plane[3]
     if np.min(height - slack) > 0:
         return False
-    return reach(on_plane, plane) >= WALL_REACH * largest
+    return across >= WALL_REACH * largest
+
+
+def cell_grid(
+    on_plane: np.ndarray, plane: np.ndarray, cell: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which cells (``cell`` wide, in the plane) a plane's points occupy: the grid, the
+    plane's two in-plane axes, and the grid's lowest cell."""
+    axes = in_plane(plane[:3])
+    mine = np.floor(on_plane @ axes / cell).astype(np.int64)
+    low = mine.min(axis=0)
+    mine -= low
+    occupied = np.zeros(mine.max(axis=0) + 1, dtype=bool)
+    occupied[mine[:, 0], mine[:, 1]] = True
+    return occupied, axes, low
 
 
 def connected(on_plane: np.ndarray, plane: np.ndarray, cell: float) -> float:
     """The share of the cells a plane's points occupy (``cell`` wide) that lie in its largest
     patch of neighbouring cells: near 1 for a table or a bin's floor (the parts on it are
     islands), low for a plane through the tops of parts lying side by side (strips)."""
-    cells = np.floor(on_plane @ in_plane(plane[:3]) / cell).astype(np.int64)
-    cells -= cells.min(axis=0)
-    grid = np.zeros(cells.max(axis=0) + 1, dtype=bool)
-    grid[cells[:, 0], cells[:, 1]] = True
+    grid, _, _ = cell_grid(on_plane, plane, cell)
     labels, count = ndimage.label(grid, structure=np.ones((3, 3)))
     if count == 0:
         return 0.0
