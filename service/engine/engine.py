@@ -742,7 +742,7 @@ class Engine:
         thin = frame.thinned(scales.min() / THIN_PER_SCALE)  # thin
         angle = frame.pixel_angle()
         clock.lap("thin")
-        keep, supports = set_aside_supports(thin, angle, float(scales.max()), query.rng)
+        keep, supports = set_aside_supports(thin, angle, scales, query.rng)
         clock.lap("supports")
         rest = thin.take(keep)
         labels = segments(rest, angle)  # segments

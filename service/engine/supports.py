@@ -5,7 +5,10 @@ A plane found by RANSAC is a support when it holds ``SUPPORT_SHARE`` of the fram
 and what lies over it is on the camera's side: parts rest on a table, in a bin; but behind a
 part's own face lies the rest of the part (``BEHIND_SHARE``). The first support is the one
 the parts rest on (a table, a bin's floor); what lies beyond it, away from the camera (the
-floor under a table, the table under a bin), is set aside with it.
+floor under a table, the table under a bin), is set aside with it. What lies behind a plane
+but apart from it (the floor the camera sees past a table's edge) does not count against it; a
+bin's floor lies level on the table and just above it; the largest part is the largest that
+fits in what is left once the first support is set aside (docs/decisions.md#detect).
 """
 
 from __future__ import annotations
@@ -17,14 +20,19 @@ from scipy import ndimage
 
 from service.engine.frame import Frame
 from service.engine.normalize import subsample
+from service.engine.segments import components, grid_links
 from service.engine.tuning import (
     BEHIND_SHARE,
+    BOUND_CELLS,
+    BOUND_STRAYS,
     CARRIED_POINTS,
     LATER_SHARE,
     MAX_PLANES,
     MAX_SUPPORTS,
+    PART_EXTENTS,
     PLANE_ITERATIONS,
     SENSOR_NOISE,
+    SLAB_SHARE,
     SUPPORT_CELLS,
     SUPPORT_CONNECTED,
     SUPPORT_NOISE,
@@ -55,12 +63,30 @@ def tolerances(frame: Frame, angle: float) -> np.ndarray:
     return frame.ranges() * (SUPPORT_SPACINGS * angle * frame.step + SUPPORT_NOISE)
 
 
+def largest_fitting(scales: np.ndarray, size: float) -> float:
+    """The largest of the parts' ``scales`` no larger than ``size`` (of them all, if none is):
+    the largest part a cloud of that radius may hold."""
+    fits = scales[scales <= size]
+    return float((fits if len(fits) else scales).max())
+
+
+def extent(points: np.ndarray) -> float:
+    """How far a cloud reaches from its centroid, stray points aside (the 95th percentile)."""
+    if not len(points):
+        return 0.0
+    return float(np.percentile(np.linalg.norm(points - points.mean(axis=0), axis=1), 95))
+
+
 def set_aside_supports(
-    frame: Frame, angle: float, largest: float, rng: np.random.Generator
+    frame: Frame, angle: float, scales: np.ndarray, rng: np.random.Generator
 ) -> tuple[np.ndarray, list[Support]]:
     """Which of the frame's points are left once the supports are set aside (a mask), and the
     supports. ``angle``: the angle between neighbouring pixels' rays (``Frame.pixel_angle``);
-    ``largest``: the largest scale a part in the frame may have (``is_wall``)."""
+    ``scales``: those of the parts the frame may hold (the largest that fits in the frame, then
+    in what is left once the first support is set aside, is the largest a part may have)."""
+    largest = largest_fitting(scales, extent(frame.points))
+    links: tuple[np.ndarray, np.ndarray] | None = None  # the frame's pixel links, if needed
+    floors: list[np.ndarray] = []  # the points of the bins' floors found
     keep = np.ones(len(frame), dtype=bool)
     faces = np.zeros(len(frame), dtype=bool)  # on planes found to be parts' faces
     supports: list[Support] = []
@@ -84,13 +110,13 @@ def set_aside_supports(
         on_plane = frame.points[rest[on]]
         across = reach(on_plane, plane)
         wide = across >= largest
+        level = any(is_level(on_plane, plane, below, across) for below in supports)
+        wide = wide or level  # a bin's floor: level with the table, just above it
         # no part's face reaches this far: the table under a bin, whatever lies behind its
         # cells (a later plane may be parts' faces side by side: it must carry, or be a wall)
         vast = not supports and across >= SUPPORT_REACH * largest
-        wall = (
-            bool(supports)
-            and wide
-            and is_wall(on_plane, plane, supports[0], across, largest, tolerance[rest[on]])
+        wall = bool(supports) and is_wall(
+            on_plane, plane, supports, floors, across, largest, tolerance[rest[on]], cell
         )
         # the first may carry nothing (an empty table); a later one is a wall, or carries
         # something and reaches farther than a part's face could
@@ -98,6 +124,12 @@ def set_aside_supports(
         carrying = (not supports or wide) and carries(
             on_plane, frame.points[off], plane, cell, least_over
         )
+        if (not supports or wide) and not carrying and frame.shape is not None:
+            # the background seen past a table's edge lies behind it too, but apart from it
+            if links is None:
+                links = grid_links(frame, angle, frame.ranges())[:2]
+            apart = detached_behind(frame, links, rest[on], off, plane, tolerance, across)
+            carrying = carries(on_plane, frame.points[off], plane, cell, least_over, apart)
         support = wall or carrying or vast
         if support and supports:  # one surface, not a slice through a pile's tops
             support = connected(on_plane, plane, cell) >= SUPPORT_CONNECTED  # decisions.md#detect
@@ -105,8 +137,12 @@ def set_aside_supports(
             faces[rest[on]] = True  # a part's face: the next plane may still be a support
             continue
         keep[rest[on]] = False
+        if level:
+            floors.append(on_plane)
         if not supports:  # what lies beyond the surface the parts rest on
             keep &= frame.points @ plane[:3] - plane[3] > -tolerance
+            if keep.any():  # the parts lie in what is left
+                largest = largest_fitting(scales, PART_EXTENTS * extent(frame.points[keep]))
         residual = on_plane @ plane[:3] - plane[3]
         spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
         distance = np.linalg.norm(on_plane - frame.viewpoint, axis=1)
@@ -115,45 +151,111 @@ def set_aside_supports(
 
 
 def carries(
-    on_plane: np.ndarray, others: np.ndarray, plane: np.ndarray, cell: float, least: int = 0
+    on_plane: np.ndarray,
+    others: np.ndarray,
+    plane: np.ndarray,
+    cell: float,
+    least: int = 0,
+    apart: np.ndarray | None = None,
 ) -> bool:
     """Whether a plane carries what lies over it, as a table does: of the other points over
     the cells its own points occupy (more than ``least`` of them, and than ``CARRIED_POINTS``:
     else it is a bare surface, which carries only where ``least`` is 0), less than
     ``BEHIND_SHARE`` lie behind it (away from the camera), as a part's rest lies behind its
-    face."""
+    face. ``apart``: a mask of ``others`` that do not count (``detached_behind``)."""
+    if apart is not None:
+        others = others[~apart]
     if not len(others):
         return least == 0
-    occupied, axes, low = cell_grid(on_plane, plane, cell)
-    cells = np.floor(others @ axes / cell).astype(np.int64) - low
-    inside = np.all((cells >= 0) & (cells < occupied.shape), axis=1)
-    over = np.zeros(len(others), dtype=bool)
-    over[inside] = occupied[cells[inside, 0], cells[inside, 1]]
+    over = lies_over(on_plane, others, plane, cell)
     if over.sum() <= max(least, CARRIED_POINTS):  # too few to judge by: a bare surface
         return least == 0
     height = others[over] @ plane[:3] - plane[3]
     return bool(np.mean(height < 0) < BEHIND_SHARE)
 
 
+def lies_over(on_plane: np.ndarray, others: np.ndarray, plane: np.ndarray, cell: float):
+    """(M,) which of the ``others`` lie over (in front of or behind) the cells, ``cell`` wide,
+    that the plane's points occupy."""
+    occupied, axes, low = cell_grid(on_plane, plane, cell)
+    cells = np.floor(others @ axes / cell).astype(np.int64) - low
+    inside = np.all((cells >= 0) & (cells < occupied.shape), axis=1)
+    over = np.zeros(len(others), dtype=bool)
+    over[inside] = occupied[cells[inside, 0], cells[inside, 1]]
+    return over
+
+
+def detached_behind(
+    frame: Frame,
+    links: tuple[np.ndarray, np.ndarray],
+    on: np.ndarray,
+    off: np.ndarray,
+    plane: np.ndarray,
+    tolerance: np.ndarray,
+    across: float,
+) -> np.ndarray:
+    """A mask of the points ``off`` the plane (indices into ``frame``) that lie behind it but
+    are not linked to its points ``on`` through points behind it (``links``: the frame's
+    neighbouring pixel pairs, ``segments.grid_links``): the background the camera sees past a
+    table's edge, under it; and of those linked that lie less than ``SLAB_SHARE`` of its
+    reach (``across``) behind it: a table top's edge. The rest of a part lies behind its face,
+    joins it, and reaches about as deep as the face is wide."""
+    height = frame.points[off] @ plane[:3] - plane[3]
+    behind = np.zeros(len(frame), dtype=bool)
+    behind[off] = height < -tolerance[off]
+    member = behind.copy()
+    member[on] = True
+    first, second = links
+    both = member[first] & member[second]
+    labels = components(len(frame), first[both], second[both])
+    joined = np.zeros(int(labels.max(initial=-1)) + 1, dtype=bool)
+    joined[labels[on]] = True
+    edge = height > -SLAB_SHARE * across
+    return behind[off] & (~joined[labels[off]] | edge)
+
+
+def is_level(on_plane: np.ndarray, plane: np.ndarray, floor: Support, across: float) -> bool:
+    """Whether a plane lies level with a support found before it (within ``WALL_DEG``), above it
+    by less than ``SLAB_SHARE`` of its reach (``across``): a bin's floor on a table, not the
+    face of a part (which would be a thin plate)."""
+    level = abs(float(plane[:3] @ floor.plane[:3])) > np.cos(np.radians(WALL_DEG))
+    height = float(np.median(on_plane @ floor.plane[:3] - floor.plane[3]))
+    return level and 0 < height < SLAB_SHARE * across
+
+
 def is_wall(
     on_plane: np.ndarray,
     plane: np.ndarray,
-    floor: Support,
+    supports: list[Support],
+    floors: list[np.ndarray],
     across: float,
     largest: float,
     slack: np.ndarray,
+    cell: float,
 ) -> bool:
-    """Whether a plane is a bin's wall: upright on the first support (``WALL_DEG``), standing
-    on it, and reaching along it (``across``: its ``reach``) farther than any part could
-    (``WALL_REACH`` times the largest part's scale). Behind a bin's near wall lies what the
+    """Whether a plane is a bin's wall: upright on a support found before it (``WALL_DEG``),
+    standing on it, and reaching along it (``across``: its ``reach``) farther than any part
+    could (``WALL_REACH`` times the largest part's scale), or bounding a bin's floor found
+    before it (``floors``: their points; ``bounds``). Behind a bin's near wall lies what the
     bin holds, so ``carries`` does not tell it from a part's face."""
-    upright = abs(float(plane[:3] @ floor.plane[:3])) < np.sin(np.radians(WALL_DEG))
-    if not upright:
+    standing = False
+    for floor in supports:
+        upright = abs(float(plane[:3] @ floor.plane[:3])) < np.sin(np.radians(WALL_DEG))
+        height = on_plane @ floor.plane[:3] - floor.plane[3]
+        standing = standing or (upright and bool(np.min(height - slack) <= 0))
+    if not standing:
         return False
-    height = on_plane @ floor.plane[:3] - floor.plane[3]
-    if np.min(height - slack) > 0:
-        return False
-    return across >= WALL_REACH * largest
+    if across >= WALL_REACH * largest:
+        return True
+    return any(bounds(plane, points, cell) for points in floors)
+
+
+def bounds(plane: np.ndarray, floor: np.ndarray, cell: float) -> bool:
+    """Whether a plane bounds a bin's ``floor`` (its points): the floor lies on one side of
+    it (all but ``BOUND_STRAYS`` of its points) and comes within ``BOUND_CELLS`` cells of it."""
+    side = floor @ plane[:3] - plane[3]
+    one_side = min(np.mean(side > 0), np.mean(side < 0)) < BOUND_STRAYS
+    return bool(one_side and np.percentile(np.abs(side), 1) < BOUND_CELLS * cell)
 
 
 def cell_grid(

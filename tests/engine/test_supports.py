@@ -1,0 +1,102 @@
+"""Which planes of a whole frame are supports (``service.engine.supports``): ray-cast frames
+of a table seen from beyond its edge, and of a bin standing on a table, with a gallery whose
+largest part is far larger than anything in view (so that no plane is a support by its size
+alone)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.engine.frame import Frame
+from service.engine.supports import set_aside_supports
+from tests.frames import box, resting, shoot, spin
+
+# the parts a frame may hold: small ones, and one (a tray) that reaches past the table
+SCALES = np.array([0.04, 0.06, 0.9])
+FLOOR = box((6.0, 6.0, 0.02), (0.0, 0.0, -0.76))  # the room's floor, 0.75 m under the table
+TOP = box((0.6, 0.5, 0.03), (0.0, 0.0, -0.015))  # a table top, its surface at z = 0
+
+
+def frame_of(shot) -> Frame:
+    height, width = shot.shows.shape
+    flat = shot.points.reshape(-1, 3).astype(np.float64)
+    valid = np.flatnonzero(np.isfinite(flat).all(axis=1))
+    return Frame.of(flat[valid], valid, (height, width))
+
+
+def supports_of(shot, scales=SCALES):
+    frame = frame_of(shot).thinned(0.002)
+    keep, supports = set_aside_supports(
+        frame, frame.pixel_angle(), scales, np.random.default_rng(0)
+    )
+    return frame, keep, supports
+
+
+@pytest.fixture(scope="module")
+def parts():
+    small = box((0.08, 0.06, 0.04), (0.0, 0.0, 0.0))
+    return small
+
+
+def test_a_table_seen_past_its_edge_is_set_aside_with_the_floor_under_it(parts):
+    # the camera stands beyond the table's edge: it sees the floor under the table's rim,
+    # which lies behind the table's cells but apart from it (not the rest of a part)
+    placed = [(parts, *resting(parts, spin(20), 0.05, 0.0))]
+    top = box((1.2, 1.0, 0.03), (0.0, 0.0, -0.015))  # the largest plane in view
+    shot = shoot(placed, [top, FLOOR], elevation_deg=35.0, distance=1.1)
+    floor_seen = np.isfinite(shot.points[..., 2]) & (shot.shows < 0)
+    assert floor_seen.any()
+    frame, keep, supports = supports_of(shot)
+    assert supports, "the table was not taken as a support"
+    first = supports[0]
+    # the first support is the table (the box's pixels lie just over it), not the floor
+    box_points = frame.points[np.isin(frame.index, np.flatnonzero(shot.shows.ravel() == 0))]
+    heights = box_points @ first.plane[:3] - first.plane[3]
+    assert np.median(heights) > 0.005 and np.max(heights) < 0.06
+    # the box is left for the search; the floor, 0.75 m behind the table, is set aside
+    left = frame.points[keep] @ first.plane[:3] - first.plane[3]
+    assert left.min() > -0.05
+    assert keep[np.isin(frame.index, np.flatnonzero(shot.shows.ravel() == 0))].mean() > 0.9
+
+
+def test_a_bins_floor_on_a_table_is_a_support_and_the_parts_in_it_are_left(parts):
+    inside, wall, height = 0.3, 0.01, 0.1
+    half = inside / 2 + wall / 2
+    bin_meshes = [
+        box((inside + 2 * wall, inside + 2 * wall, wall), (0.0, 0.0, wall / 2)),  # its floor
+        box((inside + 2 * wall, wall, height), (0.0, half, wall + height / 2)),
+        box((inside + 2 * wall, wall, height), (0.0, -half, wall + height / 2)),
+        box((wall, inside, height), (half, 0.0, wall + height / 2)),
+        box((wall, inside, height), (-half, 0.0, wall + height / 2)),
+    ]
+    placed = [
+        (parts, *resting(parts, spin(10), -0.06, 0.05, wall)),
+        (parts, *resting(parts, spin(70), 0.07, -0.04, wall)),
+    ]
+    shot = shoot(placed, [TOP, FLOOR, *bin_meshes], elevation_deg=70.0, distance=0.9)
+    frame, keep, supports = supports_of(shot)
+    assert len(supports) >= 2, "the bin's floor was not taken as a support"
+    table, floor = supports[0], supports[1]
+    assert abs(table.plane[:3] @ floor.plane[:3]) > 0.99  # level with the table
+    shown = frame.index
+    for k in range(len(placed)):  # each box is left whole for the search
+        mine = np.isin(shown, np.flatnonzero(shot.shows.ravel() == k))
+        assert keep[mine].mean() > 0.9
+    # the bin's floor itself is set aside: few points left lie on it
+    on_floor = np.abs(frame.points @ floor.plane[:3] - floor.plane[3]) < 0.003
+    assert (keep & on_floor).sum() < 0.1 * on_floor.sum()
+
+
+def test_a_parts_top_face_level_with_the_table_is_not_a_bins_floor(parts):
+    # a tall box's top: level with the table, but far higher above it than a bin's floor
+    tall = box((0.16, 0.14, 0.06), (0.0, 0.0, 0.0))
+    placed = [
+        (tall, *resting(tall, spin(15), 0.0, 0.0)),
+        (parts, *resting(parts, spin(0), 0.0, 0.0, 0.06)),
+    ]
+    shot = shoot(placed, [TOP, FLOOR], elevation_deg=80.0, distance=0.8)
+    radius = float(np.linalg.norm([0.08, 0.07, 0.03]))  # the tall box is a registered part
+    frame, keep, supports = supports_of(shot, np.append(SCALES, radius))
+    top = np.isin(frame.index, np.flatnonzero(shot.shows.ravel() == 0))
+    assert keep[top].mean() > 0.9, "the tall box's top was set aside as a support"
