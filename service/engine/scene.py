@@ -44,6 +44,7 @@ from service.engine.tuning import (
     FRAGMENT,
     JOIN_PIXELS,
     JOIN_SCALES,
+    MATCH_POINTS,
     MAX_JOINS,
     MAX_TRIES,
     MIN_EXPLAINED,
@@ -427,12 +428,23 @@ class Scan:
             return
         answer.confidence = self.calibration.confidence(said)
         threshold = next(t for t in (self.min_confidence, self.calibration.accept) if t is not None)
-        if answer.confidence >= threshold:
+        few = len(instance.claimed) < MATCH_POINTS  # docs/decisions.md#detect
+        if answer.confidence >= threshold and not few:
             answer.verdict, answer.reasons = "match", []
             doubt(answer, share=False)  # the chain's confidence, shared among them, is a feature
             return
         answer.verdict = "uncertain" if answer.confidence >= 0.2 else "no_match"
-        reasons = [f"the confidence {answer.confidence:.2f} is below the threshold {threshold:.2f}"]
+        reasons = []
+        if answer.confidence < threshold:
+            reasons.append(
+                f"the confidence {answer.confidence:.2f} is below the threshold {threshold:.2f}"
+            )
+        if few:
+            reasons.append(
+                f"only {len(instance.claimed)} of the frame's points (thinned) are explained by "
+                f"{answer.label}, fewer than the {MATCH_POINTS} a match needs: too few to tell "
+                "it from parts that look alike; image it closer, or with less hidden"
+            )
         if said["through"] > THROUGH_DOUBT:
             reasons.append(
                 f"the camera saw through {said['through']:.0%} of where {answer.label} would "

@@ -93,3 +93,26 @@ def test_one_part_found_twice_at_one_pose_is_one_instance(engine, one_box):
     b = Instance(twin, box, np.arange(50, 100), np.full(50, 0.001))
     kept = settle_claims([a, b], 100, keep_share=0.5)
     assert kept == [a]
+
+
+def test_a_part_seen_by_too_few_points_is_not_a_match(engine):
+    # with the detections' calibration, a box 3.5 m away (about 110 points) is refused as
+    # too small to tell from a look-alike, whatever its confidence; 2 m away it is a match
+    calibrated = Engine(
+        engine.mapper,
+        SETTINGS.engine,
+        engine.calibration,
+        Calibration.load(SETTINGS.detect_confidence_path),
+    )
+    calibrated.load([engine.entry("box").reference])
+    mesh = trimesh.creation.box((0.08, 0.06, 0.04))
+    verdicts = {}
+    for distance in (2.0, 3.5):
+        shot = shoot([(mesh, *resting(mesh, spin(25), 0.0, 0.0))], table(), distance=distance)
+        found = calibrated.detect(frame_of(shot), min_confidence=0.0).detections
+        assert [d.answer.label for d in found] == ["box"]
+        verdicts[distance] = found[0].answer
+    assert verdicts[2.0].verdict == "match"
+    far = verdicts[3.5]
+    assert far.verdict == "uncertain"
+    assert any("a match needs" in reason for reason in far.reasons)
