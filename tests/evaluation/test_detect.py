@@ -136,3 +136,31 @@ def test_fpfh_finds_two_instances_of_a_part_beside_a_plane(parts):
     for rotation, translation in poses:
         errors = [truth.add_s(r, t, rotation, translation) for r, t in found]
         assert min(errors) < 0.1
+
+
+def test_frames_told_their_parts_are_reported_beside_the_same_frames_untold(scene, truths):
+    # a cell that knows what it loaded passes the registered parts a frame holds
+    told = detect.told_parts(scene, "unseen")
+    assert told == sorted({i.name for i in scene.instances if i.registered})
+    assert detect.told_parts(scene, "seen") is None  # only the unseen frames are posted again
+    first = next(i for i in scene.instances if i.registered)
+    right = [_detection(first.name, first.rotation, first.translation)]
+    records = {}
+    for name, detections in (("untold", []), ("told", right)):
+        scored, instances = detect.match_detections(scene, detections, truths)
+        records[name] = {
+            "family": "scene", "set": "unseen", "size": "640x480", "body": "pcd",
+            "stem": scene.stem, "latency_ms": 100.0, "detections": scored,
+            "instances": instances,
+        }  # fmt: skip
+    result = {
+        "records": [records["untold"]], "told": [records["told"]], "references": 54,
+        "plan": {"baseline_frames": 0}, "seed": 0,
+    }  # fmt: skip
+    report = report_frames.frames_report(result)
+    pair = report["told"]["scene"]
+    assert pair["untold"]["right_matches"] == 0 and pair["told"]["right_matches"] == 1
+    assert "bin" not in report["told"]  # no bin frame was told
+    lines = report_frames.told_lines(report["told"])
+    assert any("| scene, unseen | candidates | 1 |" in line for line in lines)
+    assert any("| scene, unseen | nothing | 1 |" in line for line in lines)
