@@ -3,6 +3,7 @@ frames, and check it on frames of parts it was not fitted on.
 
     python -m evaluation.calibrate_detect                       # models/detect_confidence.json
     python -m evaluation.calibrate_detect --frames 4 --out /tmp/d.json   # a try
+    python -m evaluation.calibrate_detect --told    # frames told their parts, added beside it
 
 A part seen in a whole frame is often half hidden by others, and far smaller in the camera's
 view than the single views ``evaluation.calibrate`` fits the chain's confidence on: the chain
@@ -25,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -71,10 +73,14 @@ def frame_of(frame: whole.Frame) -> Frame:
     return Frame.of(points[valid], valid, (frame.camera.height, frame.camera.width))
 
 
-def rows_of(engine: Engine, frame: whole.Frame, truth_points: dict) -> list[dict]:
-    """Each instance found in ``frame`` (no floor, the chain's confidence): its evidence, and
-    whether it was right, matched one to one, best first, with the ground truth."""
-    scene = engine.detect(frame_of(frame), floor=0.0)
+def rows_of(
+    engine: Engine, frame: whole.Frame, truth_points: dict, told: bool = False
+) -> list[dict]:
+    """Each instance found in ``frame`` (no floor, the chain's confidence; ``told``: with the
+    registered parts it holds as the candidates): its evidence, and whether it was right,
+    matched one to one, best first, with the ground truth."""
+    named = sorted({i.name for i in frame.instances if i.registered}) if told else None
+    scene = engine.detect(frame_of(frame), candidates=named or None, floor=0.0)
     used: set[int] = set()
     rows = []
     for detection in scene.detections:
@@ -102,12 +108,14 @@ def rows_of(engine: Engine, frame: whole.Frame, truth_points: dict) -> list[dict
     return rows
 
 
-def collect(engine, family_counts, seed, pool, foreign, truth_points, desc) -> list[dict]:
+def collect(
+    engine, family_counts, seed, pool, foreign, truth_points, desc, told=False
+) -> list[dict]:
     rows = []
     plan = [(family, i) for family, count in family_counts.items() for i in range(count)]
     for family, index in tqdm(plan, desc=desc, leave=False):
         frame = whole.make_frame(family, index, seed, pool, foreign)
-        rows += rows_of(engine, frame, truth_points)
+        rows += rows_of(engine, frame, truth_points, told)
     return rows
 
 
@@ -129,6 +137,11 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--frames", type=int, default=8, help="scene frames x3, bin, foreign")
     parser.add_argument("--seed", type=int, default=11)
     parser.add_argument("--rows", type=Path, default=None, help="also write every instance here")
+    parser.add_argument(
+        "--told",
+        action="store_true",
+        help="fit the calibration of frames told their parts (candidates) and add it to --out",
+    )
     args = parser.parse_args(argv)
     began = time.perf_counter()
     registered, foreign = whole.manifest_parts()
@@ -140,15 +153,21 @@ def main(argv: list[str] | None = None) -> dict:
     counts = {family: n * args.frames for family, n in FAMILIES.items()}
     seen = [p for p in registered if p.split == "seen"]
     unseen = [p for p in registered if p.split == "unseen"]
-    fit_rows = collect(engine, counts, args.seed, seen, foreign, truth_points, "fit frames")
+    if args.told:  # scene and bin frames: a part-free frame names no candidate
+        counts = {family: n for family, n in counts.items() if family != "foreign"}
+    fit_rows = collect(
+        engine, counts, args.seed, seen, foreign, truth_points, "fit frames", args.told
+    )
     check_rows = collect(
-        engine, counts, args.seed + 1, unseen, foreign, truth_points, "check frames"
+        engine, counts, args.seed + 1, unseen, foreign, truth_points, "check frames", args.told
     )
     calibration = fit_calibration(fit_rows, SCENE_FEATURES)
     accept = acceptance(calibration, fit_rows)
     about = {
         "fitted": datetime.now(UTC).isoformat(timespec="seconds"),
-        "command": "python -m evaluation.calibrate_detect" + f" --frames {args.frames}",
+        "command": "python -m evaluation.calibrate_detect"
+        + f" --frames {args.frames}"
+        + (" --told" if args.told else ""),
         "model_sha256": engine.mapper.model_hash,
         "fit_frames": {k: v for k, v in counts.items()},
         "fit": judge(calibration, fit_rows, accept),
@@ -160,6 +179,8 @@ def main(argv: list[str] | None = None) -> dict:
         "bias", "mean", "spread")], about, accept)  # fmt: skip
     if args.rows:
         args.rows.write_text(json.dumps({"fit": fit_rows, "check": check_rows}, default=float))
+    if args.told:  # beside the calibration of frames told nothing, which stays as it is
+        calibration = replace(Calibration.load(args.out), told=calibration)
     calibration.save(args.out)
     for part in ("fit", "check"):
         print(part, about[part])

@@ -24,7 +24,8 @@ as ``confidence.json``. The verdict follows: ``match`` at or above the acceptanc
 (the request's ``min_confidence``, else the setting ``engine.accept``, else the calibration's
 own: the lowest at which 99.5 % of the accepted answers it was fitted on were right),
 ``no_match`` below ``reject_below``, ``uncertain`` between; every verdict but ``match`` says
-why.
+why. A detection's calibration (``SCENE_FEATURES``) may carry a second one, ``told``, fitted on
+frames whose requests named the parts they hold (``candidates``).
 """
 
 from __future__ import annotations
@@ -50,13 +51,20 @@ class Calibration:
     spread: np.ndarray  # (F,)
     about: dict  # what it was fitted on and how well it did, for the record
     accept: float = 0.9  # the default acceptance threshold the fit chose (see evaluation)
+    # a detection's, where the request names its candidates: the margin to the other parts
+    # then counts only those named (docs/decisions.md#detect)
+    told: Calibration | None = None
 
     @classmethod
     def load(cls, path: Path) -> Calibration:
-        document = json.loads(Path(path).read_text())
+        return cls.of(json.loads(Path(path).read_text()), str(path))
+
+    @classmethod
+    def of(cls, document: dict, source: str = "the calibration") -> Calibration:
         unknown = set(document["features"]) - set(FEATURES) - set(SCENE_FEATURES)
         if unknown:
-            raise ValueError(f"{path}: features this engine does not measure: {sorted(unknown)}")
+            raise ValueError(f"{source}: features this engine does not measure: {sorted(unknown)}")
+        told = document.get("told")
         return cls(
             tuple(document["features"]),
             np.asarray(document["weights"], dtype=np.float64),
@@ -65,9 +73,10 @@ class Calibration:
             np.asarray(document["spread"], dtype=np.float64),
             document.get("about", {}),
             float(document.get("accept", 0.9)),
+            None if told is None else cls.of(told, f"{source} (told)"),
         )
 
-    def save(self, path: Path) -> None:
+    def document(self) -> dict:
         document = {
             "features": list(self.features),
             "weights": self.weights.tolist(),
@@ -77,7 +86,12 @@ class Calibration:
             "accept": self.accept,
             "about": self.about,
         }
-        Path(path).write_text(json.dumps(document, indent=2) + "\n")
+        if self.told is not None:
+            document["told"] = self.told.document()
+        return document
+
+    def save(self, path: Path) -> None:
+        Path(path).write_text(json.dumps(self.document(), indent=2) + "\n")
 
     def confidence(self, measures: dict[str, float]) -> float:
         values = np.array([measures[name] for name in self.features])

@@ -221,6 +221,11 @@ class Scan:
     def __post_init__(self):
         self.free = np.ones(len(self.frame), dtype=bool)
 
+    @property
+    def told(self) -> bool:
+        """Whether the request named the candidates, fewer than every registered part."""
+        return len(self.query.allowed) < len(self.query.snapshot.classifier.labels)
+
     def in_time(self) -> bool:
         """Whether there is time to search one more region (else the search is incomplete)."""
         if self.deadline is not None and time.monotonic() > self.deadline:
@@ -426,8 +431,11 @@ class Scan:
         answer, said = instance.answer, instance.evidence
         if self.calibration is None:
             return
-        answer.confidence = self.calibration.confidence(said)
-        threshold = next(t for t in (self.min_confidence, self.calibration.accept) if t is not None)
+        calibration = self.calibration
+        if calibration.told is not None and self.told:
+            calibration = calibration.told
+        answer.confidence = calibration.confidence(said)
+        threshold = next(t for t in (self.min_confidence, calibration.accept) if t is not None)
         few = len(instance.claimed) < MATCH_POINTS  # docs/decisions.md#detect
         if answer.confidence >= threshold and not few:
             answer.verdict, answer.reasons = "match", []

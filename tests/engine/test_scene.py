@@ -116,3 +116,28 @@ def test_a_part_seen_by_too_few_points_is_not_a_match(engine):
     far = verdicts[3.5]
     assert far.verdict == "uncertain"
     assert any("a match needs" in reason for reason in far.reasons)
+
+
+def test_a_frame_told_its_candidates_is_judged_by_the_told_calibration(engine, tmp_path):
+    # the shipped detections' calibration, with a told one beside it that doubts everything
+    shipped = Calibration.load(SETTINGS.detect_confidence_path)
+    doubting = replace(shipped, bias=-50.0, about={"note": "refuses every instance"})
+    path = tmp_path / "detect_confidence.json"
+    replace(shipped, told=doubting).save(path)
+    loaded = Calibration.load(path)
+    assert loaded.told is not None and loaded.told.bias == -50.0
+    assert loaded.bias == shipped.bias  # the untold one is kept as it was
+    calibrated = Engine(engine.mapper, SETTINGS.engine, engine.calibration, loaded)
+    box = engine.entry("box").reference
+    other = trimesh.creation.box((0.2, 0.02, 0.02))
+    points, faces = sample_surface_faces(other, 2048, 0)
+    calibrated.load([box, engine.make_reference("rod", points, mesh=other, face_index=faces)])
+    mesh = trimesh.creation.box((0.08, 0.06, 0.04))
+    frame = frame_of(shoot([(mesh, *resting(mesh, spin(25), 0.0, 0.0))], table()))
+    untold = calibrated.detect(frame).detections
+    assert [(d.answer.label, d.answer.verdict) for d in untold] == [("box", "match")]
+    told = calibrated.detect(frame, candidates=["box"], floor=0.0).detections
+    assert [d.answer.label for d in told] == ["box"]
+    assert told[0].answer.verdict == "no_match"  # judged by the told calibration
+    everyone = calibrated.detect(frame, candidates=["box", "rod"]).detections
+    assert [d.answer.verdict for d in everyone] == ["match"]  # naming them all is not told
