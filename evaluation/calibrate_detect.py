@@ -181,6 +181,10 @@ def main(argv: list[str] | None = None) -> dict:
         args.rows.write_text(json.dumps({"fit": fit_rows, "check": check_rows}, default=float))
     if args.told:  # beside the calibration of frames told nothing, which stays as it is
         calibration = replace(Calibration.load(args.out), told=calibration)
+    elif args.out.exists():  # a told one fitted on the same model is kept beside the new one
+        told = Calibration.load(args.out).told
+        if told is not None and told.about.get("model_sha256") == engine.mapper.model_hash:
+            calibration = replace(calibration, told=told)
     calibration.save(args.out)
     for part in ("fit", "check"):
         print(part, about[part])

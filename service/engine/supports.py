@@ -174,7 +174,9 @@ def carries(
     return bool(np.mean(height < 0) < BEHIND_SHARE)
 
 
-def lies_over(on_plane: np.ndarray, others: np.ndarray, plane: np.ndarray, cell: float):
+def lies_over(
+    on_plane: np.ndarray, others: np.ndarray, plane: np.ndarray, cell: float
+) -> np.ndarray:
     """(M,) which of the ``others`` lie over (in front of or behind) the cells, ``cell`` wide,
     that the plane's points occupy."""
     occupied, axes, low = cell_grid(on_plane, plane, cell)

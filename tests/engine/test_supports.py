@@ -88,6 +88,32 @@ def test_a_bins_floor_on_a_table_is_a_support_and_the_parts_in_it_are_left(parts
     assert (keep & on_floor).sum() < 0.1 * on_floor.sum()
 
 
+def test_a_bins_walls_are_supports_because_they_bound_its_floor(parts):
+    # a registered part of 15 cm: the walls (30 cm long) reach less than WALL_REACH times it,
+    # but each bounds the bin's floor found before it
+    inside, wall, height = 0.3, 0.01, 0.1
+    half = inside / 2 + wall / 2
+    bin_meshes = [
+        box((inside + 2 * wall, inside + 2 * wall, wall), (0.0, 0.0, wall / 2)),
+        box((inside + 2 * wall, wall, height), (0.0, half, wall + height / 2)),
+        box((inside + 2 * wall, wall, height), (0.0, -half, wall + height / 2)),
+        box((wall, inside, height), (half, 0.0, wall + height / 2)),
+        box((wall, inside, height), (-half, 0.0, wall + height / 2)),
+    ]
+    placed = [
+        (parts, *resting(parts, spin(10), -0.06, 0.05, wall)),
+        (parts, *resting(parts, spin(70), 0.07, -0.04, wall)),
+    ]
+    shot = shoot(placed, [TOP, FLOOR, *bin_meshes], elevation_deg=55.0, distance=0.9)
+    frame, keep, supports = supports_of(shot, np.array([0.04, 0.06, 0.15, 0.9]))
+    up = supports[0].plane[:3]
+    walls = [s for s in supports if abs(s.plane[:3] @ up) < 0.35]
+    assert len(walls) >= 2, "the bin's walls were kept"
+    for k in range(len(placed)):  # the boxes in the bin are left whole for the search
+        mine = np.isin(frame.index, np.flatnonzero(shot.shows.ravel() == k))
+        assert keep[mine].mean() > 0.9
+
+
 def test_a_parts_top_face_level_with_the_table_is_not_a_bins_floor(parts):
     # a tall box's top: level with the table, but far higher above it than a bin's floor
     tall = box((0.16, 0.14, 0.06), (0.0, 0.0, 0.0))
