@@ -79,7 +79,7 @@ def rows_of(
     """Each instance found in ``frame`` (no floor, the chain's confidence; ``told``: with the
     registered parts it holds as the candidates): its evidence, and whether it was right,
     matched one to one, best first, with the ground truth."""
-    named = sorted({i.name for i in frame.instances if i.registered}) if told else None
+    named = frame.registered_parts() if told else None
     scene = engine.detect(frame_of(frame), candidates=named or None, floor=0.0)
     used: set[int] = set()
     rows = []

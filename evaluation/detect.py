@@ -423,7 +423,7 @@ def told_parts(frame: F.Frame, split: str) -> list[str] | None:
     what it loaded passes them in ``candidates``; None for the other frames."""
     if split != "unseen" or frame.family not in ("scene", "bin") or frame.camera is not F.VGA:
         return None
-    return sorted({i.name for i in frame.instances if i.registered}) or None
+    return frame.registered_parts() or None
 
 
 def shipped_scales(gallery: Path) -> dict[str, float]:

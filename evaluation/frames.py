@@ -321,6 +321,10 @@ class Frame:
         """The pixel indices (row × width + column) where instance ``index`` is seen."""
         return np.flatnonzero(self.labels.ravel() == index + 1)
 
+    def registered_parts(self) -> list[str]:
+        """The names of the registered parts the frame holds, sorted."""
+        return sorted({i.name for i in self.instances if i.registered})
+
     def truth(self) -> dict:
         """The ground truth as JSON."""
         return {

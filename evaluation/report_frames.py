@@ -133,11 +133,17 @@ def curve(instances: list[dict]) -> list[dict]:
     return rows
 
 
-def _stems_by_family(records: list[dict]) -> dict[str, set]:
-    stems: dict[str, set] = {"scene": set(), "bin": set()}
-    for r in records:
-        stems.setdefault(r["family"], set()).add((r["stem"], r["set"]))
-    return stems
+def told_pairs(records: list[dict], told: list[dict]) -> dict:
+    """Per family of the frames posted again told their parts: their figures, and those of
+    the same frames as first posted."""
+    pairs = {}
+    for family in ("scene", "bin"):
+        again = [r for r in told if r["family"] == family]
+        if again:
+            stems = {(r["stem"], r["set"]) for r in again}
+            first = [r for r in records if (r["stem"], r["set"]) in stems]
+            pairs[family] = {"told": summarize_frames(again), "untold": summarize_frames(first)}
+    return pairs
 
 
 def frames_report(frames: dict) -> dict:
@@ -170,18 +176,7 @@ def frames_report(frames: dict) -> dict:
         "engine_told_on_baseline_frames": summarize_frames(
             [r for r in frames.get("told", []) if (r["stem"], r["set"]) in baseline_stems]
         ),
-        "told": {
-            family: {
-                "told": summarize_frames([r for r in told if r["family"] == family]),
-                "untold": summarize_frames(
-                    [r for r in records if (r["stem"], r["set"]) in told_stems[family]]
-                ),
-            }
-            for family in ("scene", "bin")
-            if (told := frames.get("told", []))
-            and (told_stems := _stems_by_family(told))
-            and told_stems[family]
-        },
+        "told": told_pairs(records, frames.get("told", [])),
         "curves": {
             "engine, unseen": curve(_registered(unseen)),
             "engine, seen": curve(_registered([r for r in records if r["set"] == "seen"])),

@@ -109,9 +109,8 @@ def set_aside_supports(
         off = np.flatnonzero(others)
         on_plane = frame.points[rest[on]]
         across = reach(on_plane, plane)
-        wide = across >= largest
         level = any(is_level(on_plane, plane, below, across) for below in supports)
-        wide = wide or level  # a bin's floor: level with the table, just above it
+        wide = level or across >= largest  # a bin's floor: level with the table, just above it
         # no part's face reaches this far: the table under a bin, whatever lies behind its
         # cells (a later plane may be parts' faces side by side: it must carry, or be a wall)
         vast = not supports and across >= SUPPORT_REACH * largest
@@ -121,13 +120,12 @@ def set_aside_supports(
         # the first may carry nothing (an empty table); a later one is a wall, or carries
         # something and reaches farther than a part's face could
         least_over = CARRIED_POINTS if supports else 0
-        carrying = (not supports or wide) and carries(
-            on_plane, frame.points[off], plane, cell, least_over
-        )
-        if (not supports or wide) and not carrying and frame.shape is not None:
+        may_carry = not supports or wide
+        carrying = may_carry and carries(on_plane, frame.points[off], plane, cell, least_over)
+        if may_carry and not carrying and frame.shape is not None:
             # the background seen past a table's edge lies behind it too, but apart from it
             if links is None:
-                links = grid_links(frame, angle, frame.ranges())[:2]
+                links = grid_links(frame, angle, ranges)[:2]
             apart = detached_behind(frame, links, rest[on], off, plane, tolerance, across)
             carrying = carries(on_plane, frame.points[off], plane, cell, least_over, apart)
         support = wall or carrying or vast

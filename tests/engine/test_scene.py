@@ -12,12 +12,11 @@ import trimesh
 
 from service.engine.confidence import Calibration
 from service.engine.engine import Engine
-from service.engine.frame import Frame
 from service.engine.mapping import Mapper
 from service.engine.sampling import sample_surface_faces
 from service.engine.scene import Instance, settle_claims
 from service.settings import Settings
-from tests.frames import resting, shoot, spin, table
+from tests.frames import frame_of, resting, shoot, spin, table
 
 SETTINGS = Settings()
 
@@ -35,13 +34,6 @@ def engine() -> Engine:
     points, faces = sample_surface_faces(box, 2048, 0)
     engine.load([engine.make_reference("box", points, mesh=box, face_index=faces)])
     return engine
-
-
-def frame_of(shot) -> Frame:
-    height, width = shot.shows.shape
-    flat = shot.points.reshape(-1, 3).astype(np.float64)
-    valid = np.flatnonzero(np.isfinite(flat).all(axis=1))
-    return Frame.of(flat[valid], valid, (height, width))
 
 
 @pytest.fixture(scope="module")

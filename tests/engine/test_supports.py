@@ -8,9 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.engine.frame import Frame
 from service.engine.supports import set_aside_supports
-from tests.frames import box, resting, shoot, spin
+from tests.frames import box, frame_of, resting, shoot, spin
 
 # the parts a frame may hold: small ones, and one (a tray) that reaches past the table
 SCALES = np.array([0.04, 0.06, 0.9])
@@ -18,11 +17,22 @@ FLOOR = box((6.0, 6.0, 0.02), (0.0, 0.0, -0.76))  # the room's floor, 0.75 m und
 TOP = box((0.6, 0.5, 0.03), (0.0, 0.0, -0.015))  # a table top, its surface at z = 0
 
 
-def frame_of(shot) -> Frame:
-    height, width = shot.shows.shape
-    flat = shot.points.reshape(-1, 3).astype(np.float64)
-    valid = np.flatnonzero(np.isfinite(flat).all(axis=1))
-    return Frame.of(flat[valid], valid, (height, width))
+def raised_bin(part, inside: float = 0.3, wall: float = 0.01, height: float = 0.1):
+    """A bin standing on the table, its floor a slab ``wall`` thick, and two of ``part`` in
+    it: the bin's meshes, and the parts placed (mesh, world R, world t)."""
+    half = inside / 2 + wall / 2
+    meshes = [
+        box((inside + 2 * wall, inside + 2 * wall, wall), (0.0, 0.0, wall / 2)),  # its floor
+        box((inside + 2 * wall, wall, height), (0.0, half, wall + height / 2)),
+        box((inside + 2 * wall, wall, height), (0.0, -half, wall + height / 2)),
+        box((wall, inside, height), (half, 0.0, wall + height / 2)),
+        box((wall, inside, height), (-half, 0.0, wall + height / 2)),
+    ]
+    placed = [
+        (part, *resting(part, spin(10), -0.06, 0.05, wall)),
+        (part, *resting(part, spin(70), 0.07, -0.04, wall)),
+    ]
+    return meshes, placed
 
 
 def supports_of(shot, scales=SCALES):
@@ -61,19 +71,7 @@ def test_a_table_seen_past_its_edge_is_set_aside_with_the_floor_under_it(parts):
 
 
 def test_a_bins_floor_on_a_table_is_a_support_and_the_parts_in_it_are_left(parts):
-    inside, wall, height = 0.3, 0.01, 0.1
-    half = inside / 2 + wall / 2
-    bin_meshes = [
-        box((inside + 2 * wall, inside + 2 * wall, wall), (0.0, 0.0, wall / 2)),  # its floor
-        box((inside + 2 * wall, wall, height), (0.0, half, wall + height / 2)),
-        box((inside + 2 * wall, wall, height), (0.0, -half, wall + height / 2)),
-        box((wall, inside, height), (half, 0.0, wall + height / 2)),
-        box((wall, inside, height), (-half, 0.0, wall + height / 2)),
-    ]
-    placed = [
-        (parts, *resting(parts, spin(10), -0.06, 0.05, wall)),
-        (parts, *resting(parts, spin(70), 0.07, -0.04, wall)),
-    ]
+    bin_meshes, placed = raised_bin(parts)
     shot = shoot(placed, [TOP, FLOOR, *bin_meshes], elevation_deg=70.0, distance=0.9)
     frame, keep, supports = supports_of(shot)
     assert len(supports) >= 2, "the bin's floor was not taken as a support"
@@ -91,19 +89,7 @@ def test_a_bins_floor_on_a_table_is_a_support_and_the_parts_in_it_are_left(parts
 def test_a_bins_walls_are_supports_because_they_bound_its_floor(parts):
     # a registered part of 15 cm: the walls (30 cm long) reach less than WALL_REACH times it,
     # but each bounds the bin's floor found before it
-    inside, wall, height = 0.3, 0.01, 0.1
-    half = inside / 2 + wall / 2
-    bin_meshes = [
-        box((inside + 2 * wall, inside + 2 * wall, wall), (0.0, 0.0, wall / 2)),
-        box((inside + 2 * wall, wall, height), (0.0, half, wall + height / 2)),
-        box((inside + 2 * wall, wall, height), (0.0, -half, wall + height / 2)),
-        box((wall, inside, height), (half, 0.0, wall + height / 2)),
-        box((wall, inside, height), (-half, 0.0, wall + height / 2)),
-    ]
-    placed = [
-        (parts, *resting(parts, spin(10), -0.06, 0.05, wall)),
-        (parts, *resting(parts, spin(70), 0.07, -0.04, wall)),
-    ]
+    bin_meshes, placed = raised_bin(parts)
     shot = shoot(placed, [TOP, FLOOR, *bin_meshes], elevation_deg=55.0, distance=0.9)
     frame, keep, supports = supports_of(shot, np.array([0.04, 0.06, 0.15, 0.9]))
     up = supports[0].plane[:3]
