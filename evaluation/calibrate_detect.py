@@ -36,6 +36,7 @@ from tqdm import tqdm
 from evaluation import frames as whole
 from evaluation.calibrate import PRECISION, fit_calibration, judge
 from evaluation.metrics import add_s, diameter
+from service.api.clouds import organized
 from service.engine.confidence import SCENE_FEATURES, Calibration
 from service.engine.engine import Engine
 from service.engine.frame import Frame
@@ -68,9 +69,9 @@ def gallery_engine(parts: list[whole.FramePart]) -> Engine:
 
 def frame_of(frame: whole.Frame) -> Frame:
     """The engine's view of a frame, as POST /detect makes it from its organized PCD."""
-    points = frame.points().reshape(-1, 3).astype(np.float64)
-    valid = np.flatnonzero(np.isfinite(points).all(axis=1))
-    return Frame.of(points[valid], valid, (frame.camera.height, frame.camera.width))
+    grid = frame.points()
+    cloud = organized(grid, grid.shape[0] * grid.shape[1], "frame")
+    return Frame.of(cloud.points, cloud.index, cloud.shape)
 
 
 def rows_of(

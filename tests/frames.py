@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from evaluation.camera import cast_rays
 from evaluation.scenes import look_at
+from service.api.clouds import organized
 from service.engine.frame import Frame
 
 VGA = (640, 480, 525.0)  # width, height, focal length in pixels
@@ -63,10 +64,8 @@ class Shot:
 
 def frame_of(shot: Shot) -> Frame:
     """The engine's view of a shot, as POST /detect makes it from its organized PCD."""
-    height, width = shot.shows.shape
-    flat = shot.points.reshape(-1, 3).astype(np.float64)
-    valid = np.flatnonzero(np.isfinite(flat).all(axis=1))
-    return Frame.of(flat[valid], valid, (height, width))
+    cloud = organized(shot.points, shot.shows.size, "frame")
+    return Frame.of(cloud.points, cloud.index, cloud.shape)
 
 
 def box(sides: tuple[float, float, float], centre: tuple[float, float, float]) -> trimesh.Trimesh:
