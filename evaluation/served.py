@@ -131,11 +131,12 @@ class ServiceProcess:
         self.log_path = Path(log_path)
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         self.began = time.perf_counter()
+        env = service_env(self.port, inherit, **settings)
         with open(self.log_path, "ab") as log:
             self.process = subprocess.Popen(
                 [sys.executable, "-m", "service"],
                 cwd=REPO,
-                env=service_env(self.port, inherit, **settings),
+                env=env,
                 stdout=log,
                 stderr=subprocess.STDOUT,
             )
@@ -155,9 +156,22 @@ class ServiceProcess:
         return self.process.poll() is None
 
     def wait_ready(self, timeout: float = 120.0) -> None:
-        """Until ``/v2/health/ready`` answers 200 (``wait_ready``); notes how long it took."""
+        """Until ``/v2/health/ready`` answers 200 (``wait_ready``) and the engine's worker
+        processes answer (``dpc_engine_processes``); notes how long it took."""
         wait_ready(self.url, self.alive, timeout, log=self.log)
+        eventually(self.processes_up, timeout, (NotReady, httpx.TransportError), every_s=0.1)
         self.ready_s = time.perf_counter() - self.began
+
+    def processes_up(self) -> None:
+        """Raises NotReady until every engine worker process answers."""
+        gauges = {}
+        for line in httpx.get(f"{self.url}/metrics", timeout=5).text.splitlines():
+            name, _, value = line.partition(" ")
+            if name in ("dpc_engine_processes", "dpc_engine_processes_wanted"):
+                gauges[name] = float(value)
+        ready = gauges.get("dpc_engine_processes", 0)
+        if ready < gauges.get("dpc_engine_processes_wanted", 0):
+            raise NotReady(f"engine worker processes: {ready:g} of {gauges}")
 
     def log(self, lines: int = 30) -> str:
         try:

@@ -6,6 +6,7 @@ Grouped by concern; nested groups read ``DPC_<GROUP>__<FIELD>``, e.g.
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 from typing import Annotated, Literal
@@ -120,7 +121,7 @@ class LimitSettings(BaseModel):
     # export (POST /gallery/restore, /gallery/import: about 0.6 MB a reference)
     max_bulk_bytes: int = Field(1024 * 1024 * 1024, ge=1024)
     request_timeout_s: float = Field(30.0, gt=0)  # the engine's work for one request; then 504
-    max_concurrent_align: int | None = Field(None, ge=1)  # default: server.workers_threads
+    max_concurrent_align: int | None = Field(None, ge=1)  # default: Settings.align_slots
     queue_timeout_s: float = Field(5.0, ge=0)  # wait for a free slot; then 503 + Retry-After
 
 
@@ -152,10 +153,15 @@ class ServerSettings(BaseModel):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
     workers_threads: int = Field(2, ge=1)  # threads that run alignments off the event loop
+    # processes that run /align and /detect, each with the model and a copy of the gallery
+    # (docs/decisions.md#a-second-core); 0: all in the service's own process; default: one a
+    # core this process may use, at most AUTO_ENGINE_PROCESSES, none on a single core
+    engine_processes: int | None = Field(None, ge=0, le=64)
     log_level: Annotated[LogLevel, BeforeValidator(lower)] = "info"  # INFO reads as info
     log_format: Literal["json", "text"] = "json"  # json: one object a line
 
 
+AUTO_ENGINE_PROCESSES = 4  # each holds ~240 MB and a copy of the gallery
 OPEN_RECENT_ALIGNMENTS = 20
 
 
@@ -201,6 +207,19 @@ class Settings(BaseSettings):
         return chosen if chosen is not None else (0 if self.auth.keys else OPEN_RECENT_ALIGNMENTS)
 
     @property
+    def engine_processes(self) -> int:
+        """How many worker processes run ``/align`` and ``/detect`` (``server.engine_processes``;
+        by default one a usable core, at most ``AUTO_ENGINE_PROCESSES``, 0 on one core)."""
+        chosen = self.server.engine_processes
+        if chosen is not None:
+            return chosen
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        return min(cores or 1, AUTO_ENGINE_PROCESSES) if (cores or 1) > 1 else 0
+
+    @property
     def align_slots(self) -> int:
-        """How many alignments may run at once."""
-        return self.limits.max_concurrent_align or self.server.workers_threads
+        """How many alignments may run at once: by default one a thread, and at least one a
+        worker process."""
+        return self.limits.max_concurrent_align or max(
+            self.server.workers_threads, self.engine_processes
+        )

@@ -10,6 +10,7 @@ service with ``evaluation.served.wait_ready``, the one wait-until-ready loop, an
 
 from __future__ import annotations
 
+import os
 import threading
 from pathlib import Path
 
@@ -39,6 +40,9 @@ __all__ = [
     "wait_ready",
 ]
 
+# The tests' servers answer in their own process unless a test asks for worker processes
+# (tests/api/test_engine_processes.py): each worker loads the model, seconds a server.
+os.environ.setdefault("DPC_SERVER__ENGINE_PROCESSES", "0")
 MODEL = Settings().model  # the model and seed gallery the environment names
 ADMIN_KEY, READ_KEY = "tests-admin-key-0123", "tests-read-key-4567"  # conftest's keyed_service
 needs_model = pytest.mark.skipif(
@@ -107,6 +111,7 @@ class ProcessServer(Server):
     data, or read its logs. ``settings`` as ``ServiceProcess`` takes them."""
 
     def __init__(self, data_dir: Path, log_path: Path, headers=None, **settings: str):
+        settings.setdefault("server__engine_processes", os.environ["DPC_SERVER__ENGINE_PROCESSES"])
         self.process = ServiceProcess(
             log_path, wait=False, gallery__data_dir=str(data_dir), **settings
         )

@@ -30,6 +30,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api import auth, logs, startup
 from service.api.dependencies import Loading, NotReady
+from service.api.engine_processes import EngineProcesses
 from service.api.limiter import Busy, Limiter, TimedOut
 from service.api.recent import RecentAlignments
 from service.api.routes import align, alignments, detect, gallery, health, points, references
@@ -151,6 +152,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     )
     catalog = Catalog(engine, store, settings.gallery.max_references)
     app.state.catalog = catalog
+    app.state.processes = processes = EngineProcesses(engine, settings, settings.engine_processes)
     limits = settings.limits
     app.state.limiter = limiter = Limiter(
         settings.align_slots, limits.queue_timeout_s, limits.request_timeout_s
@@ -159,11 +161,15 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     app.state.metrics_references.set_function(lambda: len(catalog.engine))
     stop = threading.Event()
     keeper = threading.Thread(
-        target=_keep_gallery, args=(catalog, settings, loading, stop), name="gallery", daemon=True
+        target=_keep_gallery,
+        args=(catalog, settings, loading, stop, processes),
+        name="gallery",
+        daemon=True,
     )
     keeper.start()
     yield
     limiter.close()
+    processes.close()
     stop.set()
     keeper.join(timeout=settings.gallery.poll_s + 1.0)  # a load cannot be interrupted: the
     # daemon thread then dies with us
@@ -191,13 +197,19 @@ def _log_auth(settings: Settings) -> None:
 
 
 def _keep_gallery(
-    catalog: Catalog, settings: Settings, loading: Loading, stop: threading.Event
+    catalog: Catalog,
+    settings: Settings,
+    loading: Loading,
+    stop: threading.Event,
+    processes: EngineProcesses,
 ) -> None:
-    """Load the gallery, waiting while its store cannot be reached; then follow the changes
-    other replicas make (``service.gallery.follower``) until the app stops."""
+    """Load the gallery, waiting while its store cannot be reached; start the engine's worker
+    processes; then follow the changes other replicas make (``service.gallery.follower``) until
+    the app stops."""
     while not _load(catalog, settings, loading):
         if loading.status == "failed" or stop.wait(LOAD_RETRY_S):
             return
+    threading.Thread(target=processes.start, name="engine-processes", daemon=True).start()
     follow(catalog, settings.gallery.poll_s, stop, loading.report_store)
 
 
@@ -371,6 +383,24 @@ def _add_metrics(app: FastAPI) -> None:
         registry=registry,
     )
     writes.set_function(lambda: getattr(getattr(app.state, "limiter", None), "writing", 0))
+    processes = Gauge(
+        "dpc_engine_processes",
+        "Engine worker processes answering /align and /detect (0: the service's own process)",
+        registry=registry,
+    )
+    processes.set_function(lambda: getattr(getattr(app.state, "processes", None), "ready", 0))
+    wanted = Gauge(
+        "dpc_engine_processes_wanted",
+        "Engine worker processes meant to answer (server.engine_processes; 0 if they failed)",
+        registry=registry,
+    )
+    wanted.set_function(lambda: getattr(getattr(app.state, "processes", None), "wanted", 0))
+    jobs = Gauge(
+        "dpc_engine_process_jobs",
+        "Alignments and detections the engine worker processes answered",
+        registry=registry,
+    )
+    jobs.set_function(lambda: getattr(getattr(app.state, "processes", None), "jobs", 0))
 
 
 def _document_auth(document: dict[str, Any], settings: Settings) -> None:

@@ -12,6 +12,7 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 
+from service.api.engine_processes import EngineProcesses
 from service.api.limiter import Limiter
 from service.api.recent import RecentAlignments
 from service.engine.engine import Engine
@@ -66,6 +67,14 @@ async def get_engine(catalog: Annotated[Catalog, Depends(get_catalog)]) -> Engin
     return catalog.engine
 
 
+async def get_processes(
+    request: Request, catalog: Annotated[Catalog, Depends(get_catalog)]
+) -> EngineProcesses:
+    """The engine's ``align`` and ``detect``, in its worker processes once they are up
+    (``service.api.engine_processes``)."""
+    return request.app.state.processes
+
+
 async def get_limiter(request: Request) -> Limiter:
     """The slots, threads and time budget of the engine's work (``service.api.limiter``)."""
     return request.app.state.limiter
@@ -81,5 +90,6 @@ LoadingDep = Annotated[Loading, Depends(get_loading)]
 LoadingCatalogDep = Annotated[Catalog, Depends(get_loading_catalog)]
 CatalogDep = Annotated[Catalog, Depends(get_catalog)]
 EngineDep = Annotated[Engine, Depends(get_engine)]
+ProcessesDep = Annotated[EngineProcesses, Depends(get_processes)]
 LimiterDep = Annotated[Limiter, Depends(get_limiter)]
 RecentDep = Annotated[RecentAlignments, Depends(get_recent)]

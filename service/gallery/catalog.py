@@ -66,13 +66,14 @@ class Catalog:
     def model_hash(self) -> str:
         return self.engine.mapper.model_hash
 
-    def load(self, seed_gallery: Path | None) -> None:
-        """Seed the store on its first start, refresh stale references, fill the engine."""
-        if self.store.get_meta(SEEDED_KEY) is None:
+    def load(self, seed_gallery: Path | None, writer: bool = True) -> None:
+        """Seed the store on its first start, refresh stale references, fill the engine; not
+        a ``writer`` (an engine worker process), only fill the engine."""
+        if writer and self.store.get_meta(SEEDED_KEY) is None:
             self._seed(seed_gallery)
         references, held = [], {}
         for record in self.store.load_records():
-            reference, held[record.name] = self._usable(record, write_back=True)
+            reference, held[record.name] = self._usable(record, write_back=writer)
             references.append(reference)
         with self._write_lock:
             self.engine.load(references)

@@ -8,7 +8,8 @@ import numpy as np
 from fastapi import APIRouter, Query, Request
 
 from service.api.auth import ReadAccess
-from service.api.dependencies import EngineDep, LimiterDep, RecentDep, SettingsDep
+from service.api.dependencies import LimiterDep, ProcessesDep, RecentDep, SettingsDep
+from service.api.engine_processes import EngineProcesses
 from service.api.recent import RecentAlignments
 from service.api.routes.common import (
     JSON,
@@ -33,7 +34,6 @@ from service.api.schemas import (
 from service.api.uploads import CAMERA_FIELDS, CLOUD_FILES, Form, form_points, read_form
 from service.api.validation import points_from_raw, validate_points
 from service.engine.answer import Alignment
-from service.engine.engine import Engine
 from service.settings import Settings
 
 router = APIRouter(tags=["align"])
@@ -62,7 +62,7 @@ BODY = {
 )
 async def align(
     request: Request,
-    engine: EngineDep,
+    engine: ProcessesDep,
     settings: SettingsDep,
     limiter: LimiterDep,
     recent: RecentDep,
@@ -96,7 +96,7 @@ async def align(
 
 
 def _align(
-    engine: Engine,
+    engine: EngineProcesses,
     settings: Settings,
     body: bytes | Form,
     kind: str,

@@ -9,7 +9,8 @@ import numpy as np
 from fastapi import APIRouter, Query, Request
 
 from service.api.auth import ReadAccess
-from service.api.dependencies import EngineDep, LimiterDep, SettingsDep
+from service.api.dependencies import LimiterDep, ProcessesDep, SettingsDep
+from service.api.engine_processes import EngineProcesses
 from service.api.routes.align import alternatives, transform, vector
 from service.api.routes.common import (
     JSON,
@@ -33,7 +34,6 @@ from service.api.schemas import (
 from service.api.uploads import CAMERA_FIELDS, CLOUD_FILES, Form, form_cloud, read_form
 from service.api.validation import points_from_raw, validate_points
 from service.engine.answer import SceneAnswer
-from service.engine.engine import Engine
 from service.engine.frame import Frame
 from service.settings import Settings
 
@@ -64,7 +64,7 @@ BODY = {
 )
 async def detect(
     request: Request,
-    engine: EngineDep,
+    engine: ProcessesDep,
     settings: SettingsDep,
     limiter: LimiterDep,
     candidates: Annotated[list[ReferenceName] | None, Query()] = None,
@@ -103,7 +103,11 @@ async def detect(
 
 
 def _detect(
-    engine: Engine, settings: Settings, body: bytes | Form, kind: str, query: dict[str, Any]
+    engine: EngineProcesses,
+    settings: Settings,
+    body: bytes | Form,
+    kind: str,
+    query: dict[str, Any],
 ) -> DetectResponse:
     """Parse and validate the frame, detect (in a worker thread)."""
     limits = settings.limits

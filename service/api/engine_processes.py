@@ -1,0 +1,177 @@
+"""The engine's alignments and detections in processes of their own, so a second core answers.
+
+One interpreter runs one alignment's Python at a time (its GIL). With
+``server.engine_processes`` above 0, ``/align`` and ``/detect`` run in that many worker
+processes, spawned once the gallery has loaded. Each worker holds its own model session and its
+own copy of the gallery, read from the store. Before every job it reads the store's version (one
+small query) and follows what changed, so an answer never trails a change the service has
+acknowledged. Until the workers are up, and while a pool that lost a worker is replaced, the job
+runs in this process as before: nothing is refused for it. Parsing, the time budget, the
+console's recent alignments and the metrics stay here (docs/decisions.md#a-second-core).
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import threading
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any
+
+from service import memory
+from service.engine.engine import Engine
+from service.errors import StoreUnavailable
+from service.gallery.catalog import Catalog
+from service.settings import Settings
+
+log = logging.getLogger(__name__)
+
+START_TIMEOUT_S = 600.0  # for the workers to load the model and the gallery
+
+
+class EngineProcesses:
+    """``align`` and ``detect`` as the engine's, run in the worker processes once they are up."""
+
+    def __init__(self, engine: Engine, settings: Settings, count: int):
+        self.engine = engine  # this process's: the work until the workers are up
+        self.settings = settings
+        self.count = count
+        self.jobs = 0  # jobs the workers answered (a metric)
+        self.failed = False  # the workers could not start: this process answers
+        self._pool: ProcessPoolExecutor | None = None
+        self._lock = threading.Lock()
+        self._closed = False
+
+    @property
+    def ready(self) -> int:
+        """How many worker processes answer jobs now."""
+        return self.count if self._pool is not None else 0
+
+    @property
+    def wanted(self) -> int:
+        """How many worker processes are meant to answer (0 once they could not start)."""
+        return 0 if self.failed else self.count
+
+    def start(self) -> None:
+        """Spawn the workers and wait until each has loaded the model and the gallery (the
+        gallery's loading thread calls it, after this process's own load)."""
+        if not self.count or self._closed:
+            return
+        context = multiprocessing.get_context("spawn")  # no fork of a process with threads
+        started = context.Barrier(self.count)  # a job waits until every worker has loaded
+        pool = ProcessPoolExecutor(
+            self.count, mp_context=context, initializer=_start, initargs=(self.settings, started)
+        )
+        try:
+            pids = {future.result() for future in [pool.submit(_pid) for _ in range(self.count)]}
+        except Exception:  # a worker that cannot start: this process answers, as without them
+            log.exception("the engine's worker processes did not start; answering in-process")
+            pool.shutdown(wait=False, cancel_futures=True)
+            self.failed = True
+            return
+        with self._lock:
+            if self._closed:
+                pool.shutdown(wait=False, cancel_futures=True)
+                return
+            self._pool = pool
+            self.failed = False
+        log.info("engine worker processes ready: %d (pids %s)", self.count, sorted(pids))
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
+
+    def align(self, *args: Any, **kwargs: Any):
+        return self._run("align", args, kwargs)
+
+    def detect(self, *args: Any, **kwargs: Any):
+        return self._run("detect", args, kwargs)
+
+    def _run(self, method: str, args: tuple, kwargs: dict):
+        pool = self._pool
+        if pool is not None:
+            try:
+                result = pool.submit(_job, method, args, kwargs).result()
+            except BrokenProcessPool:  # a worker died (killed, out of memory): start again
+                self._replace(pool)
+            else:
+                self.jobs += 1
+                return result
+        return getattr(self.engine, method)(*args, **kwargs)
+
+    def _replace(self, broken: ProcessPoolExecutor) -> None:
+        """Drop a pool that lost a worker and start a new one in the background; until it is
+        up, this process answers."""
+        with self._lock:
+            if self._pool is not broken:  # another request's thread got here first
+                return
+            self._pool = None
+        log.error("an engine worker process died; answering in-process while new ones start")
+        broken.shutdown(wait=False, cancel_futures=True)
+        threading.Thread(target=self.start, name="engine-processes", daemon=True).start()
+
+
+# --- in each worker process -----------------------------------------------------------------
+
+_catalog: Catalog | None = None
+_seen: int | None = None  # the store's version the worker's gallery has followed
+
+
+def _start(settings: Settings, started: threading.Barrier) -> None:
+    """A worker's start: the model, the calibrations and the gallery as the service loads them;
+    it ends with the process that spawned it."""
+    global _catalog, _seen
+    from service.api import logs, startup
+
+    logs.configure(settings.server.log_level, settings.server.log_format)
+    memory.fix_mmap_threshold()
+    startup.quiet_onnxruntime()
+    _watch_parent()
+    mapper, store = startup.prepare(settings)
+    engine = Engine(
+        mapper,
+        settings.engine,
+        startup.load_calibration(settings),
+        startup.load_calibration(settings, detections=True),
+    )
+    catalog = Catalog(engine, store, settings.gallery.max_references)
+    _seen = store.version()
+    catalog.load(None, writer=False)  # the service has seeded and refreshed the store
+    _catalog = catalog
+    started.wait(START_TIMEOUT_S)
+
+
+def _pid() -> int:
+    return os.getpid()
+
+
+def _job(method: str, args: tuple, kwargs: dict):
+    """The engine's ``method`` on the gallery as the store holds it now."""
+    global _seen
+    try:
+        version = _catalog.store.version()
+        if version != _seen:
+            _catalog.sync()
+            _seen = version
+    except StoreUnavailable:  # nothing can change while it is down: answer on what is held,
+        log.warning("the gallery store cannot be reached; answering on the gallery held")
+    return getattr(_catalog.engine, method)(*args, **kwargs)
+
+
+def _watch_parent() -> None:
+    """End this worker when the service's process ends, killed or not (no orphan holds the
+    store's connections or the memory)."""
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+
+    def watch() -> None:
+        parent.join()
+        os._exit(0)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
