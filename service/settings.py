@@ -162,6 +162,7 @@ class ServerSettings(BaseModel):
 
 
 AUTO_ENGINE_PROCESSES = 4  # each holds ~240 MB and a copy of the gallery
+JOBS_PER_PROCESS = 2  # alignment slots a worker process: the next job queued while one runs
 OPEN_RECENT_ALIGNMENTS = 20
 
 
@@ -218,8 +219,8 @@ class Settings(BaseSettings):
 
     @property
     def align_slots(self) -> int:
-        """How many alignments may run at once: by default one a thread, and at least one a
-        worker process."""
+        """How many alignments may run at once: by default one a thread, and two a worker
+        process (one waiting while the other is answered: docs/decisions.md#a-second-core)."""
         return self.limits.max_concurrent_align or max(
-            self.server.workers_threads, self.engine_processes
+            self.server.workers_threads, JOBS_PER_PROCESS * self.engine_processes
         )
