@@ -76,6 +76,10 @@ def observation_arguments(sub: argparse.ArgumentParser) -> None:
         sub.add_argument(f"--{name}", type=float, help="depth image: camera intrinsic, pixels")
     sub.add_argument("--depth-scale", type=float, help="depth image: scene units per value")
     sub.add_argument("--mask", help="depth image: an image of the same size; 0 leaves out")
+    sub.add_argument("--topic", help="ROS bag: the PointCloud2 topic (default: its only one)")
+    sub.add_argument(
+        "--message", type=int, default=0, help="ROS bag: which message, 0 the first, -1 the last"
+    )
 
 
 def parser() -> argparse.ArgumentParser:
@@ -124,7 +128,9 @@ def parser() -> argparse.ArgumentParser:
 
     align = command("align", run_align, "Recognise the part in a cloud file and estimate its pose")
     align.add_argument(
-        "file", help="a cloud (.ply, .pcd, .npy) or a depth image (.png, .tif, .npy) with --fx..."
+        "file",
+        help="a cloud (.ply, .pcd, .npy), a depth image (.png, .tif, .npy) with --fx..., or a "
+        "ROS bag (.bag, .db3, .mcap, a ROS 2 bag's folder) with --topic",
     )
     observation_arguments(align)
     align.add_argument("--top-k", type=int, help="candidates to verify geometrically")
@@ -134,7 +140,9 @@ def parser() -> argparse.ArgumentParser:
 
     detect = command("detect", run_detect, "Find every registered part in a camera's whole frame")
     detect.add_argument(
-        "file", help="an organized cloud (.pcd, .npy), a cloud, or a depth image with --fx..."
+        "file",
+        help="an organized cloud (.pcd, .npy), a cloud, a depth image with --fx..., or a ROS "
+        "bag (.bag, .db3, .mcap, a ROS 2 bag's folder) with --topic",
     )
     observation_arguments(detect)
     detect.add_argument("--max-instances", type=int, help="at most this many detections")
@@ -208,6 +216,8 @@ def run_align(client: Client, arguments: argparse.Namespace) -> int:
         top_k=arguments.top_k,
         refine=arguments.refine,
         min_confidence=arguments.min_confidence,
+        topic=arguments.topic,
+        message=arguments.message,
     )
     print(json.dumps(pose.raw) if arguments.json else describe_pose(pose))
     return OK if pose.is_match else NOT_A_MATCH
@@ -223,6 +233,8 @@ def run_detect(client: Client, arguments: argparse.Namespace) -> int:
         max_instances=arguments.max_instances,
         min_confidence=arguments.min_confidence,
         roi=arguments.roi,
+        topic=arguments.topic,
+        message=arguments.message,
     )
     print(json.dumps(scene.raw) if arguments.json else describe_scene(scene))
     return OK if scene.matches else NOT_A_MATCH

@@ -24,6 +24,7 @@ import numpy as np
 from service.client.answers import Pose, Reference, Scene
 from service.client.errors import ServiceError, Unreachable, error_for
 from service.client.retry import RETRY_STATUSES, Retry
+from service.client.rosbag import is_bag, read_bag_frame
 
 RAW = "application/octet-stream"
 COPY_TYPE = RAW  # a gallery's copy (an SQLite file), sent as its bytes
@@ -91,11 +92,14 @@ class Client:
         top_k: int | None = None,
         refine: bool | None = None,
         min_confidence: float | None = None,
+        topic: str | None = None,
+        message: int = 0,
     ) -> Pose:
         """Align a file as a camera tool saved it: a cloud (PLY, PCD, NPY) or a depth image
-        (PNG, TIFF, NPY) with its ``camera`` (its viewpoint is then the camera, the origin)."""
+        (PNG, TIFF, NPY) with its ``camera`` (its viewpoint is then the camera, the origin);
+        or a ROS bag's PointCloud2 message ``message`` of ``topic`` (``service.client.rosbag``)."""
         options = _options(viewpoint, candidates, top_k, refine, min_confidence)
-        answer = self._upload("/align", path, camera, mask, options)
+        answer = self._upload("/align", path, camera, mask, options, topic, message)
         return Pose.from_answer(answer.json())
 
     def detect(
@@ -109,17 +113,20 @@ class Client:
         max_instances: int | None = None,
         min_confidence: float | None = None,
         roi: tuple[Sequence[float], Sequence[float]] | None = None,
+        topic: str | None = None,
+        message: int = 0,
     ) -> Scene:
         """Every registered part in a camera's whole frame: points (N, 3), or a file as
-        ``align_file`` takes it (an organized PCD or NPY, a depth image with its ``camera``).
-        ``roi``: the (min, max) corners of the box searched."""
+        ``align_file`` takes it (an organized PCD or NPY, a depth image with its ``camera``, a
+        ROS bag's PointCloud2 message ``message`` of ``topic``). ``roi``: the (min, max)
+        corners of the box searched."""
         options = _options(viewpoint, candidates, None, None, min_confidence)
         if max_instances is not None:
             options["max_instances"] = int(max_instances)
         if roi is not None:
             options["roi"] = ",".join(repr(float(v)) for corner in roi for v in corner)
         if isinstance(frame, str | Path):
-            answer = self._upload("/detect", frame, camera, mask, options)
+            answer = self._upload("/detect", frame, camera, mask, options, topic, message)
         else:
             answer = self._post_points("/detect", frame, options)
         return Scene.from_answer(answer.json())
@@ -261,9 +268,17 @@ class Client:
         camera: DepthCamera | None,
         mask: str | Path | None,
         options: dict[str, Any],
+        topic: str | None = None,
+        message: int = 0,
     ) -> httpx.Response:
         path = Path(path)
-        files = {"file": (path.name, path.read_bytes())}
+        if is_bag(path):  # its frame as an organized NPY: the service keeps the pixel grid
+            frame = read_bag_frame(path, topic, message)
+            buffer = io.BytesIO()
+            np.save(buffer, frame.points.astype("<f4"))
+            files = {"file": (f"{path.stem}.npy", buffer.getvalue())}
+        else:
+            files = {"file": (path.name, path.read_bytes())}
         if mask is not None:
             files["mask"] = (Path(mask).name, Path(mask).read_bytes())
         fields = {k: v for k, v in asdict(camera).items() if v is not None} if camera else {}
