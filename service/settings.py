@@ -76,6 +76,9 @@ class EngineSettings(BaseModel):
     # the best pose turned by its part's near-symmetries: this many of the turned poses nearest
     # the surface are refined, and the one nearest after refining answered (0: not tried)
     near_refined: int = Field(3, ge=0)
+    # where no reading fits well and the viewpoint is known, one more: the part in a bin, its
+    # floor and walls set aside (docs/decisions.md#a-part-in-a-bin); false: not tried
+    bin_walls: bool = True
     icp_points: int = Field(384, ge=16)
     # the answer's refinement, where it had not settled, continued for this many iterations on
     # every observed point (0: not); see Search.polish

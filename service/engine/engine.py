@@ -53,10 +53,11 @@ from service.engine.scene import Scan, settle_claims
 from service.engine.search import Plan, Search, excellent, sure_first
 from service.engine.segments import segments
 from service.engine.supports import Noise, apply_supports, set_aside_supports
-from service.engine.surroundings import Reading, as_is, set_aside_surroundings
+from service.engine.surroundings import Reading, as_is, set_aside_bin, set_aside_surroundings
 from service.engine.symmetry import find_symmetry
 from service.engine.tuning import (
     ALIKE,
+    BIN_BELOW,
     DIFFERENT_DEG,
     FLAT,
     INSTANCE_FLOOR,
@@ -364,10 +365,11 @@ class Engine:
         for reading in readings:
             if answer is not None and answer.fit * answer.coverage >= self.settings.excellent:
                 break
-            found = self.align_reading(query, reading)  # 1-8
-            found.points_set_aside = round(reading.set_aside * whole / len(scene))
-            if answer is None or found.fit * found.coverage > answer.fit * answer.coverage:
-                answer, seen = found, reading.points
+            answer, seen = self.better(query, reading, answer, seen, whole / len(scene))  # 1-8
+        if surroundings and answer.fit * answer.coverage < BIN_BELOW:
+            in_bin = self.in_bin(query, scene)  # 0, a bin's floor and walls set aside
+            if in_bin is not None:
+                answer, seen = self.better(query, in_bin, answer, seen, whole / len(scene))
         if answer.verdict != "no_match":  # 8. How far to trust it.
             self.judge(answer, min_confidence, query, flatness(seen))
             doubt(answer)  # among look-alikes that fit alike, the label is a guess
@@ -397,6 +399,25 @@ class Engine:
         readings = set_aside_surroundings(scene, rng, query.viewpoint)
         query.clock.lap("surroundings")
         return readings
+
+    def better(self, query, reading, answer, seen, per_point) -> tuple[Alignment, np.ndarray]:
+        """Steps 1-8 on ``reading``: its answer and points where it fits better than ``answer``
+        (``per_point``: the request's points a point of the reading stands for)."""
+        found = self.align_reading(query, reading)
+        found.points_set_aside = round(reading.set_aside * per_point)
+        if answer is None or found.fit * found.coverage > answer.fit * answer.coverage:
+            return found, reading.points
+        return answer, seen
+
+    def in_bin(self, query: Query, scene: np.ndarray) -> Reading | None:
+        """Step 0 once more where no reading fit well: the part in a bin, its floor and walls
+        set aside (``surroundings.set_aside_bin``; docs/decisions.md#a-part-in-a-bin), where a
+        table's reading sets aside one plane and leaves the walls with the part."""
+        if not self.settings.bin_walls:
+            return None
+        in_bin = set_aside_bin(scene, np.random.default_rng(self.settings.seed), query.viewpoint)
+        query.clock.lap("surroundings")
+        return in_bin
 
     def align_reading(self, query: Query, reading: Reading) -> Alignment:
         """Steps 1-8 on one reading of the observation."""

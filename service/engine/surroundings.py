@@ -27,9 +27,18 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from service.engine.normalize import radius, subsample
+from service.engine.principal_axes import flatness
 from service.engine.tuning import (
     AROUND,
     BEYOND,
+    BIN_BAND,
+    BIN_FLAT,
+    BIN_FLOORS,
+    BIN_JOIN,
+    BIN_PART_POINTS,
+    BIN_PLANE_SHARE,
+    BIN_REACH,
+    BIN_WALLS,
     LINK_SPACINGS,
     ONE_SIDE,
     PLANE_ITERATIONS,
@@ -45,6 +54,7 @@ from service.engine.tuning import (
 )
 
 BRUTE_FORCE = 65536  # point pairs measured one by one rather than through a tree, at most
+MIN_POINTS = 64  # a reading of fewer points is no part's
 
 
 @dataclass(frozen=True)
@@ -56,10 +66,10 @@ class Reading:
 
 
 def plane_candidate(
-    points: np.ndarray, step: float, rng: np.random.Generator
+    points: np.ndarray, step: float, rng: np.random.Generator, share: float = PLANE_SHARE
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The plane (n, d with n . x = d) holding most points, by RANSAC, and its inliers; None
-    when it holds less than ``PLANE_SHARE`` of them."""
+    when it holds less than ``share`` of them."""
     count = len(points)
     samples = points[rng.integers(0, count, size=(PLANE_ITERATIONS, 3))]
     normals = np.cross(samples[:, 1] - samples[:, 0], samples[:, 2] - samples[:, 0])
@@ -73,7 +83,7 @@ def plane_candidate(
     scored = points[rng.choice(count, size=min(count, PLANE_SCORED), replace=False)]
     best = int((np.abs(scored @ normals.T - offsets) < tolerance).sum(axis=0).argmax())
     inliers = np.abs(points @ normals[best] - offsets[best]) < tolerance
-    if inliers.mean() < PLANE_SHARE:
+    if inliers.mean() < share:
         return None
     return np.append(normals[best], offsets[best]), inliers
 
@@ -194,6 +204,129 @@ def set_aside_surroundings(
     chosen[above[the_part(rest[above], groups(rest[above], link), rest_step)]] = True
     part = _reading(points, rest, chosen, support, step, thickness)
     return [part, whole]  # whole: in case the plane is the part's own face
+
+
+def set_aside_bin(
+    points: np.ndarray, rng: np.random.Generator, viewpoint: np.ndarray | None
+) -> Reading | None:
+    """The part in a bin, seen by a camera at ``viewpoint``: the bin's floor (or the table it
+    stands on) and its walls set aside, where ``set_aside_surroundings`` sets aside one plane
+    and the walls stay with the part. The floor is the largest plane (else the next largest:
+    a wall facing the camera may hold more); the walls are the largest planes upright on it
+    (``upright_plane``), each with the part on its inner side and reaching farther from the
+    part's centre than the part does (``BIN_REACH``): a face of the part reaches no farther
+    than the rest of it. None unless at least one wall and a part (``largest_solid``) are
+    found (docs/decisions.md#a-part-in-a-bin)."""
+    if viewpoint is None or len(points) < MIN_POINTS:
+        return None
+    sample = points[subsample(points, SURROUNDINGS_SAMPLE, rng)]
+    step = median_spacing(sample, cKDTree(sample))
+    left = np.ones(len(sample), dtype=bool)
+    for _ in range(BIN_FLOORS):
+        rest = np.flatnonzero(left)
+        found = plane_candidate(sample[rest], step, rng, BIN_PLANE_SHARE * len(sample) / len(rest))
+        if found is None:
+            return None
+        floor, thickness = fitted(sample[rest[found[1]]], found[0], PLANE_SPACINGS * step)
+        floor = floor * np.sign(viewpoint @ floor[:3] - floor[3])  # the camera looks into it
+        reading = _in_bin(points, sample, step, floor, thickness, sample[rest[found[1]]], rng)
+        if reading is not None:
+            return reading
+        left[rest[found[1]]] = False
+    return None
+
+
+def _in_bin(points, sample, step, floor, floor_thickness, on_floor, rng) -> Reading | None:
+    """``set_aside_bin`` on the floor ``floor`` (its ``on_floor`` sample points)."""
+    # a noisy sensor's floor is thicker than its fitted band: a wider one is not a wall's
+    left = sample @ floor[:3] - floor[3] > BIN_BAND * floor_thickness
+    walls = []
+    for _ in range(BIN_WALLS):
+        wall = upright_plane(sample, left, floor[:3], step, rng)
+        if wall is None:
+            break
+        walls.append(wall)
+        left &= np.abs(sample @ wall[0][:3] - wall[0][3]) >= BIN_BAND * wall[1]
+    # the bin's inside: each wall's side where most of the floor lies
+    inside = on_floor.mean(axis=0)
+    walls = [(wall * np.sign(inside @ wall[:3] - wall[3]), t) for wall, t in walls]
+    pool = sample @ floor[:3] - floor[3] > floor_thickness
+    for wall, thickness in walls:
+        pool &= sample @ wall[:3] - wall[3] >= thickness
+    if not walls or pool.sum() < BIN_PART_POINTS:
+        return None
+    kept = largest_solid(sample[pool], LINK_SPACINGS * step)
+    if len(kept) < BIN_PART_POINTS:
+        return None
+    centre, reach = kept.mean(axis=0), radius(kept)
+    bounds = [(floor, floor_thickness)]
+    for wall, thickness in walls:
+        on_wall = np.abs(sample @ wall[:3] - wall[3]) < thickness
+        spread = np.linalg.norm(sample[on_wall] - centre, axis=1)
+        inner = np.mean(kept @ wall[:3] - wall[3] > thickness)
+        if inner >= ONE_SIDE and np.percentile(spread, 95) >= BIN_REACH * reach:
+            bounds.append((wall, thickness))
+    if len(bounds) < 2:
+        return None  # no wall round the part: a table's (or a part's own faces)
+    chosen = np.linalg.norm(points - centre, axis=1) <= reach + LINK_SPACINGS * step
+    for plane, thickness in bounds:
+        chosen &= points @ plane[:3] - plane[3] > thickness
+    if chosen.sum() < MIN_POINTS:
+        return None
+    return Reading(points[chosen], len(points) - int(chosen.sum()), floor, step)
+
+
+def largest_solid(points: np.ndarray, link: float) -> np.ndarray:
+    """The part among ``points`` (what a bin holds off its floor and walls): the largest group
+    of them (neighbours within ``link``) that is not flat (a piece of wall no plane was found
+    for is; else the largest), with the groups not flat within ``BIN_JOIN`` of its radius of
+    it (one view of a part falls apart where it hides itself)."""
+    labels = groups(points, link)
+    sizes = np.bincount(labels)
+    solid = {}
+    for label in np.flatnonzero(sizes >= 3):
+        group = points[labels == label]
+        solid[label] = flatness(group - group.mean(axis=0)) > BIN_FLAT
+    big = [label for label in np.argsort(-sizes) if sizes[label] >= BIN_PART_POINTS]
+    if not big:
+        return points[:0]
+    main = next((label for label in big if solid[label]), big[0])
+    kept = points[labels == main]
+    reach, tree = radius(kept), cKDTree(kept)
+    joined = [kept]
+    for label, is_solid in solid.items():
+        if label == main or not is_solid:
+            continue
+        group = points[labels == label]
+        if tree.query(group, k=1)[0].min() <= BIN_JOIN * reach:
+            joined.append(group)
+    return np.vstack(joined)
+
+
+def upright_plane(
+    sample: np.ndarray, left: np.ndarray, up: np.ndarray, step: float, rng: np.random.Generator
+) -> tuple[np.ndarray, float] | None:
+    """The plane upright on a floor of normal ``up`` holding most of the ``left`` points, by
+    RANSAC over the planes through two of them and ``up``, and its thickness; None when it
+    holds less than ``BIN_PLANE_SHARE`` of the sample."""
+    rest = sample[left]
+    if len(rest) < 2:
+        return None
+    pairs = rest[rng.integers(0, len(rest), size=(PLANE_ITERATIONS, 2))]
+    normals = np.cross(pairs[:, 1] - pairs[:, 0], up)
+    length = np.linalg.norm(normals, axis=1)
+    good = length > 1e-12
+    if not good.any():
+        return None
+    normals = normals[good] / length[good, None]
+    offsets = np.einsum("ij,ij->i", normals, pairs[good, 0])
+    tolerance = PLANE_SPACINGS * step
+    scored = rest[rng.choice(len(rest), size=min(len(rest), PLANE_SCORED), replace=False)]
+    best = int((np.abs(scored @ normals.T - offsets) < tolerance).sum(axis=0).argmax())
+    inliers = np.abs(rest @ normals[best] - offsets[best]) < tolerance
+    if inliers.sum() < BIN_PLANE_SHARE * len(sample):
+        return None
+    return fitted(rest[inliers], np.append(normals[best], offsets[best]), tolerance)
 
 
 def fitted(on_plane: np.ndarray, plane: np.ndarray, most: float) -> tuple[np.ndarray, float]:

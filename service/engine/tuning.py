@@ -6,6 +6,16 @@ from __future__ import annotations
 
 # --- 0. Surroundings: the support plane and stray points (docs/decisions.md#surroundings) ---------
 SURROUNDINGS_SAMPLE = 1024  # decisions are made on a sample of this many points
+# a part in a bin (docs/decisions.md#a-part-in-a-bin), looked for where no reading fits
+BIN_BELOW = 0.6  # this well (fit x coverage): the floor, the largest of BIN_FLOORS planes of at
+BIN_FLOORS = 2  # least BIN_PLANE_SHARE of the sample that has walls, at most BIN_WALLS planes
+BIN_PLANE_SHARE = 0.06  # upright on it, each reaching BIN_REACH times as far from the part's
+BIN_WALLS = 4  # centre as the part does, with the part on its inner side (ONE_SIDE); the part:
+BIN_REACH = 1.2  # the largest group left of BIN_PART_POINTS of the sample that is not flat
+BIN_PART_POINTS = 24  # (BIN_FLAT: a piece of wall is), with those within BIN_JOIN of its
+BIN_FLAT = 0.05  # radius; a noisy sensor's floor or wall lies within BIN_BAND of its fitted
+BIN_JOIN = 1.0  # thicknesses (what else is looked for lies beyond)
+BIN_BAND = 2.0
 PLANE_SHARE = 0.2  # a support plane holds at least this share of the points ...
 PLANE_SHARE_BLIND = 0.5  # ... this share, when the viewpoint is not known
 PLANE_REACH = 1.5  # ... reaches this many times the rest's radius from the rest's centroid
