@@ -62,8 +62,10 @@ class Frame:
         from its own horizontal neighbours; for a cloud without a grid, from its spacing."""
         if self.shape is None or len(self) < 2:
             return spacing_angle(self.points, self.viewpoint)
-        order = np.argsort(self.index)
-        index, points = self.index[order], self.points[order]
+        index, points = self.index, self.points
+        if np.any(index[1:] < index[:-1]):  # a frame's points come in pixel order: no sort
+            order = np.argsort(index)
+            index, points = index[order], points[order]
         beside = np.flatnonzero(np.diff(index) == self.step)
         if len(beside) < 16:
             return spacing_angle(self.points, self.viewpoint)

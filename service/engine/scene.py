@@ -20,6 +20,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -290,7 +291,7 @@ class Scan:
             return found
         if not self.may_hold_several(points, answer):
             return None
-        spacing = self.spacing()
+        spacing = self.spacing
         for entry in self.template_parts(points, spacing, answer):
             tolerance = self.part_tolerance(entry, sigma)
             poses = place_views(
@@ -358,6 +359,7 @@ class Scan:
             TEMPLATE_PARTS,
         )
 
+    @cached_property
     def spacing(self) -> float:
         """The distance between neighbouring points of the frame at its median range."""
         if not len(self.frame):
