@@ -224,6 +224,8 @@ def set_aside_bin(
     left = np.ones(len(sample), dtype=bool)
     for _ in range(BIN_FLOORS):
         rest = np.flatnonzero(left)
+        if len(rest) < MIN_POINTS:  # the first plane held (nearly) everything
+            return None
         found = plane_candidate(sample[rest], step, rng, BIN_PLANE_SHARE * len(sample) / len(rest))
         if found is None:
             return None
@@ -262,6 +264,8 @@ def _in_bin(points, sample, step, floor, floor_thickness, on_floor, rng) -> Read
     bounds = [(floor, floor_thickness)]
     for wall, thickness in walls:
         on_wall = np.abs(sample @ wall[:3] - wall[3]) < thickness
+        if not on_wall.any():
+            continue
         spread = np.linalg.norm(sample[on_wall] - centre, axis=1)
         inner = np.mean(kept @ wall[:3] - wall[3] > thickness)
         if inner >= ONE_SIDE and np.percentile(spread, 95) >= BIN_REACH * reach:

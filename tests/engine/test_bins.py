@@ -65,6 +65,14 @@ def test_a_table_without_walls_has_no_bins_reading(duck):
     assert set_aside_bin(scene.points.astype(np.float64), np.random.default_rng(0), None) is None
 
 
+def test_one_plane_seen_alone_has_no_bins_reading():
+    """A flat patch (junk, or a part's one face) is all one plane: no floor left to look past
+    (it once divided by the points left off it, none)."""
+    rng = np.random.default_rng(5)
+    patch = np.column_stack([rng.uniform(-0.1, 0.1, (2000, 2)), np.full(2000, 0.6)])
+    assert set_aside_bin(patch, np.random.default_rng(0), CAMERA) is None
+
+
 @pytest.fixture(scope="module")
 def engines(duck):
     """The shipped gallery and the duck; the same, never looking for a bin's walls."""
