@@ -6,6 +6,7 @@ Grouped by concern; nested groups read ``DPC_<GROUP>__<FIELD>``, e.g.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from pathlib import Path
@@ -165,6 +166,29 @@ class ServerSettings(BaseModel):
 
 
 AUTO_ENGINE_PROCESSES = 4  # each holds ~240 MB and a copy of the gallery
+CGROUP_CPU = (  # a container's CPU limit: cgroup v2, then v1 (quota, period in microseconds)
+    (Path("/sys/fs/cgroup/cpu.max"), None),
+    (Path("/sys/fs/cgroup/cpu/cpu.cfs_quota_us"), Path("/sys/fs/cgroup/cpu/cpu.cfs_period_us")),
+)
+
+
+def usable_cores(limits: tuple | None = None) -> int:
+    """The cores this process may use: those it may run on, at most its container's CPU limit
+    (a pod limited to 2 CPUs on a 64-core node sees 64 in its affinity)."""
+    limits = CGROUP_CPU if limits is None else limits
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    cores = cores or 1
+    for first, second in limits:
+        try:
+            words = first.read_text().split()
+            quota, period = words[0], (words[1] if second is None else second.read_text().strip())
+            if quota not in ("max", "-1"):
+                return max(1, min(cores, math.ceil(int(quota) / int(period))))
+        except (OSError, ValueError, IndexError, ZeroDivisionError):
+            continue
+    return cores
+
+
 JOBS_PER_PROCESS = 2  # alignment slots a worker process: the next job queued while one runs
 OPEN_RECENT_ALIGNMENTS = 20
 
@@ -217,8 +241,8 @@ class Settings(BaseSettings):
         chosen = self.server.engine_processes
         if chosen is not None:
             return chosen
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-        return min(cores or 1, AUTO_ENGINE_PROCESSES) if (cores or 1) > 1 else 0
+        cores = usable_cores()
+        return min(cores, AUTO_ENGINE_PROCESSES) if cores > 1 else 0
 
     @property
     def align_slots(self) -> int:

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from service import settings as settings_module
 from service.engine.sampling import sample_surface
 from service.settings import ServerSettings, Settings
 from tests.conftest import empty_server
@@ -166,6 +167,30 @@ def test_a_killed_worker_costs_no_request(servers):
 )
 def test_one_worker_a_core_by_default(monkeypatch, cores, chosen, processes, slots):
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(cores)), raising=False)
+    monkeypatch.setattr(settings_module, "CGROUP_CPU", ())  # no container limit
     settings = Settings(server=ServerSettings(engine_processes=chosen))
     assert settings.engine_processes == processes
     assert settings.align_slots == slots  # a job queued behind each one running
+
+
+@pytest.mark.parametrize(
+    ("v2", "v1", "cores"),
+    [
+        ("200000 100000\n", None, 2),  # cgroup v2: 2 CPUs
+        ("150000 100000\n", None, 2),  # 1.5 CPUs: the second is partly usable
+        ("max 100000\n", None, 16),  # no limit
+        (None, ("100000", "100000"), 1),  # cgroup v1: one CPU
+        (None, ("-1", "100000"), 16),
+        (None, None, 16),  # neither mounted
+    ],
+)
+def test_a_containers_cpu_limit_caps_the_cores(monkeypatch, tmp_path, v2, v1, cores):
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(16)), raising=False)
+    files = (tmp_path / "cpu.max", (tmp_path / "quota", tmp_path / "period"))
+    if v2 is not None:
+        files[0].write_text(v2)
+    if v1 is not None:
+        files[1][0].write_text(v1[0])
+        files[1][1].write_text(v1[1])
+    limits = ((files[0], None), files[1])
+    assert settings_module.usable_cores(limits) == cores
