@@ -57,6 +57,7 @@ from service.engine.surroundings import Reading, as_is, set_aside_bin, set_aside
 from service.engine.symmetry import find_symmetry
 from service.engine.tuning import (
     ALIKE,
+    BIN_ACCEPT,
     BIN_BELOW,
     DIFFERENT_DEG,
     FLAT,
@@ -366,12 +367,14 @@ class Engine:
             if answer is not None and answer.fit * answer.coverage >= self.settings.excellent:
                 break
             answer, seen = self.better(query, reading, answer, seen, whole / len(scene))  # 1-8
+        in_bin = None
         if surroundings and answer.fit * answer.coverage < BIN_BELOW:
             in_bin = self.in_bin(query, scene)  # 0, a bin's floor and walls set aside
             if in_bin is not None:
                 answer, seen = self.better(query, in_bin, answer, seen, whole / len(scene))
         if answer.verdict != "no_match":  # 8. How far to trust it.
-            self.judge(answer, min_confidence, query, flatness(seen))
+            binned = in_bin is not None and seen is in_bin.points
+            self.judge(answer, min_confidence, query, flatness(seen), binned)
             doubt(answer)  # among look-alikes that fit alike, the label is a guess
         answer.timings_ms = query.clock.total()
         return answer
@@ -641,12 +644,18 @@ class Engine:
         return alike, alternatives, closest
 
     def judge(
-        self, answer: Alignment, min_confidence: float | None, query: Query, flat: float
+        self,
+        answer: Alignment,
+        min_confidence: float | None,
+        query: Query,
+        flat: float,
+        in_bin: bool = False,
     ) -> None:
         """Step 8's confidence, verdict and reasons (``service.engine.confidence``). ``flat``
         is the observation's ``flatness``: one flat face of a part that is not flat itself
         fixes neither its turn about the face's normal nor where along the face it lies, so
-        such an answer is never a "match"."""
+        such an answer is never a "match". ``in_bin``: the answer is of a bin's reading, whose
+        walls may hide what tells parts apart: a "match" needs ``BIN_ACCEPT`` at least."""
         entry = query.snapshot.entries[answer.label]
         one_face = flat < FLAT <= entry.flatness
         values = confidence.measures(
@@ -666,6 +675,8 @@ class Engine:
             for alternative in answer.alternatives:
                 alternative.confidence = answer.confidence
             threshold = self._threshold(min_confidence)
+            if in_bin:  # docs/decisions.md#a-part-in-a-bin
+                threshold = max(threshold, BIN_ACCEPT)
             if answer.confidence >= threshold and not one_face:
                 answer.verdict, answer.reasons = "match", []
                 return
@@ -676,6 +687,7 @@ class Engine:
             if answer.confidence < threshold:
                 reasons.append(
                     f"the confidence {answer.confidence:.2f} is below the threshold {threshold:.2f}"
+                    + (" of a part seen in a bin (its floor and walls set aside)" if in_bin else "")
                 )
         answer.reasons = reasons + self._doubts(answer, values, one_face, flat, query)
 

@@ -16,6 +16,7 @@ BIN_PART_POINTS = 24  # (BIN_FLAT: a piece of wall is), with those within BIN_JO
 BIN_FLAT = 0.05  # radius; a noisy sensor's floor or wall lies within BIN_BAND of its fitted
 BIN_JOIN = 1.0  # thicknesses (what else is looked for lies beyond)
 BIN_BAND = 2.0
+BIN_ACCEPT = 0.87  # an answer of a bin's reading is a "match" from this confidence on
 PLANE_SHARE = 0.2  # a support plane holds at least this share of the points ...
 PLANE_SHARE_BLIND = 0.5  # ... this share, when the viewpoint is not known
 PLANE_REACH = 1.5  # ... reaches this many times the rest's radius from the rest's centroid

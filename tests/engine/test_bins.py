@@ -15,6 +15,7 @@ from service.engine.mapping import Mapper
 from service.engine.normalize import radius
 from service.engine.sampling import sample_surface_faces
 from service.engine.surroundings import set_aside_bin
+from service.engine.tuning import BIN_ACCEPT
 from service.gallery.gallery_file import load_gallery
 from service.settings import Settings
 from tests.meshes import pybullet_mesh
@@ -75,13 +76,14 @@ def test_one_plane_seen_alone_has_no_bins_reading():
 
 @pytest.fixture(scope="module")
 def engines(duck):
-    """The shipped gallery and the duck; the same, never looking for a bin's walls."""
+    """The shipped gallery and the duck; the same, never looking for a bin's walls; and
+    accepting any confidence (``accept``: 0)."""
     mesh, _ = duck
     calibration = Calibration.load(SETTINGS.confidence_path)
     mapper = Mapper(SETTINGS.model.path, use_cuda=False)
     made = []
-    for walls in (True, False):
-        settings = SETTINGS.engine.model_copy(update={"bin_walls": walls})
+    for update in ({"bin_walls": True}, {"bin_walls": False}, {"accept": 0.0}):
+        settings = SETTINGS.engine.model_copy(update=update)
         engine = Engine(mapper, settings, calibration)
         if not made:
             points, faces = sample_surface_faces(mesh, 2048, 0)
@@ -97,7 +99,7 @@ def test_a_part_in_a_bin_is_recognised_and_posed(duck, engines):
     looking for the walls, none is (docs/decisions.md#a-part-in-a-bin: 75-88 % of the
     calibration corpus's bins)."""
     mesh, scale = duck
-    looking, blind = engines
+    looking, blind, _ = engines
     points = np.asarray(looking.get("duck").points, np.float64)
     right, wrong, right_blind = [], [], []
     for seed in range(6):
@@ -115,3 +117,24 @@ def test_a_part_in_a_bin_is_recognised_and_posed(duck, engines):
                 assert answer.points_set_aside > 0.5 * len(scene.points)  # floor and walls
     assert len(right) >= 4 and not wrong, (right, wrong)
     assert not right_blind  # the walls kept with the part: refused, as before
+
+
+@needs_model
+def test_a_bins_answer_is_a_match_only_from_its_own_threshold(duck, engines):
+    """Its walls may hide what tells two parts apart: an answer of a bin's reading needs
+    ``BIN_ACCEPT`` (0.87), whatever the acceptance threshold is set to, and says why."""
+    mesh, scale = duck
+    *_, eager = engines
+    refused = 0
+    for seed in range(10):
+        scene = in_bin(mesh, scale, seed)
+        answer = eager.align(scene.points, viewpoint=CAMERA)
+        if answer.points_set_aside < 0.5 * len(scene.points):
+            continue  # not the bin's reading
+        if (answer.confidence or 0.0) < BIN_ACCEPT:
+            refused += 1
+            assert answer.verdict != "match", (seed, answer.confidence)
+            assert any("seen in a bin" in reason for reason in answer.reasons), answer.reasons
+        else:
+            assert answer.verdict == "match"
+    assert refused  # some of the ten bins' answers are under it
