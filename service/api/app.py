@@ -43,7 +43,6 @@ from service.api.schemas import (
     ReferenceRequest,
 )
 from service.api.uploads import cloud_upload_schema
-from service.engine.engine import Engine
 from service.engine.mapping import Mapper
 from service.errors import (
     EmptyGallery,
@@ -144,12 +143,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         ", ".join(mapper.providers),
     )
     _log_auth(settings)
-    engine = Engine(
-        mapper,
-        settings.engine,
-        startup.load_calibration(settings),
-        startup.load_calibration(settings, detections=True),
-    )
+    engine = startup.make_engine(settings, mapper)
     catalog = Catalog(engine, store, settings.gallery.max_references)
     app.state.catalog = catalog
     app.state.processes = processes = EngineProcesses(engine, settings, settings.engine_processes)

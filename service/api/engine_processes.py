@@ -133,12 +133,7 @@ def _start(settings: Settings, started: threading.Barrier) -> None:
     startup.quiet_onnxruntime()
     _watch_parent()
     mapper, store = startup.prepare(settings)
-    engine = Engine(
-        mapper,
-        settings.engine,
-        startup.load_calibration(settings),
-        startup.load_calibration(settings, detections=True),
-    )
+    engine = startup.make_engine(settings, mapper)
     catalog = Catalog(engine, store, settings.gallery.max_references)
     _seen = store.version()
     catalog.load(None, writer=False)  # the service has seeded and refreshed the store

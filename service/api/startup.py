@@ -25,6 +25,7 @@ from pathlib import Path
 import onnxruntime as ort
 
 from service.engine.confidence import Calibration
+from service.engine.engine import Engine
 from service.engine.hypotheses import SOURCES
 from service.engine.mapping import Mapper, file_sha256
 from service.errors import StoreFull, StoreUnavailable
@@ -212,3 +213,14 @@ def load_calibration(settings: Settings, detections: bool = False) -> Calibratio
             "model's release, or refit it with python -m evaluation.calibrate"
             + ("_detect" if detections else "")
         ) from None
+
+
+def make_engine(settings: Settings, mapper: Mapper) -> Engine:
+    """The engine on ``mapper`` with both calibrations beside the model: the service's own, and
+    each engine worker process's (``service.api.engine_processes``)."""
+    return Engine(
+        mapper,
+        settings.engine,
+        load_calibration(settings),
+        load_calibration(settings, detections=True),
+    )

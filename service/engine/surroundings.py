@@ -70,21 +70,34 @@ def plane_candidate(
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The plane (n, d with n . x = d) holding most points, by RANSAC, and its inliers; None
     when it holds less than ``share`` of them."""
-    count = len(points)
-    samples = points[rng.integers(0, count, size=(PLANE_ITERATIONS, 3))]
+    samples = points[rng.integers(0, len(points), size=(PLANE_ITERATIONS, 3))]
     normals = np.cross(samples[:, 1] - samples[:, 0], samples[:, 2] - samples[:, 0])
+    found = best_plane(points, normals, samples[:, 0], PLANE_SPACINGS * step, rng)
+    if found is None or found[1].mean() < share:
+        return None
+    return found
+
+
+def best_plane(
+    points: np.ndarray,
+    normals: np.ndarray,
+    through: np.ndarray,
+    tolerance: float,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Of the candidate planes of (unnormalised) ``normals`` through the points ``through``,
+    the one most of a sample of ``points`` lie within ``tolerance`` of, and its inliers among
+    all of them; None when every candidate is degenerate."""
     length = np.linalg.norm(normals, axis=1)
     good = length > 1e-12
     if not good.any():
         return None
     normals = normals[good] / length[good, None]
-    offsets = np.einsum("ij,ij->i", normals, samples[good, 0])
-    tolerance = PLANE_SPACINGS * step
+    offsets = np.einsum("ij,ij->i", normals, through[good])
+    count = len(points)
     scored = points[rng.choice(count, size=min(count, PLANE_SCORED), replace=False)]
     best = int((np.abs(scored @ normals.T - offsets) < tolerance).sum(axis=0).argmax())
     inliers = np.abs(points @ normals[best] - offsets[best]) < tolerance
-    if inliers.mean() < share:
-        return None
     return np.append(normals[best], offsets[best]), inliers
 
 
@@ -317,20 +330,11 @@ def upright_plane(
     if len(rest) < 2:
         return None
     pairs = rest[rng.integers(0, len(rest), size=(PLANE_ITERATIONS, 2))]
-    normals = np.cross(pairs[:, 1] - pairs[:, 0], up)
-    length = np.linalg.norm(normals, axis=1)
-    good = length > 1e-12
-    if not good.any():
-        return None
-    normals = normals[good] / length[good, None]
-    offsets = np.einsum("ij,ij->i", normals, pairs[good, 0])
     tolerance = PLANE_SPACINGS * step
-    scored = rest[rng.choice(len(rest), size=min(len(rest), PLANE_SCORED), replace=False)]
-    best = int((np.abs(scored @ normals.T - offsets) < tolerance).sum(axis=0).argmax())
-    inliers = np.abs(rest @ normals[best] - offsets[best]) < tolerance
-    if inliers.sum() < BIN_PLANE_SHARE * len(sample):
+    found = best_plane(rest, np.cross(pairs[:, 1] - pairs[:, 0], up), pairs[:, 0], tolerance, rng)
+    if found is None or found[1].sum() < BIN_PLANE_SHARE * len(sample):
         return None
-    return fitted(rest[inliers], np.append(normals[best], offsets[best]), tolerance)
+    return fitted(rest[found[1]], found[0], tolerance)
 
 
 def fitted(on_plane: np.ndarray, plane: np.ndarray, most: float) -> tuple[np.ndarray, float]:
