@@ -285,7 +285,8 @@ def print_report(report: dict) -> None:
             for one in figures.values():
                 value = one["ratios"][name]
                 met = value <= bound if sense == "<=" else value >= bound
-                cells.append(f"{value:6.2f} {'PASS' if met else 'FAIL'}")
+                # three decimals where two would round a miss up to the bound (0.147: "0.15 FAIL")
+                cells.append(f"{value:6.{2 if value >= 1 else 3}f} {'PASS' if met else 'FAIL'}")
             print(f"  {f'{name} {sense} {bound:g}':<34}" + "".join(f"{c:>14}" for c in cells))
         first = figures[sizes[0]]
         split = ("answer", "refusal", LARGE[-1])
