@@ -131,12 +131,11 @@ class ServiceProcess:
         self.log_path = Path(log_path)
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         self.began = time.perf_counter()
-        env = service_env(self.port, inherit, **settings)
         with open(self.log_path, "ab") as log:
             self.process = subprocess.Popen(
                 [sys.executable, "-m", "service"],
                 cwd=REPO,
-                env=env,
+                env=service_env(self.port, inherit, **settings),
                 stdout=log,
                 stderr=subprocess.STDOUT,
             )

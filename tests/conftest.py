@@ -3,6 +3,7 @@ two real servers for the tests that only add references of their own names."""
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +49,23 @@ def empty_server(data_dir: Path, **groups) -> Server:
     model = MODEL.model_copy(update={"gallery": data_dir / "no-seed.npz"})
     gallery = GallerySettings(data_dir=data_dir, self_check_poses=1)
     return Server(Settings(model=model, gallery=gallery, **groups))
+
+
+def server_holding(data_dir: Path, meshes: dict) -> Server:
+    """``empty_server`` with each of ``meshes`` (trimesh meshes, by name) registered through
+    its API as an STL upload, without the self-check."""
+    server = empty_server(data_dir)
+    for name, mesh in meshes.items():
+        buffer = io.BytesIO()
+        mesh.export(buffer, file_type="stl")
+        answer = server.client.post(
+            "/references",
+            data={"name": name},
+            files={"file": (f"{name}.stl", buffer.getvalue())},
+            params={"self_check": "false"},
+        )
+        assert answer.status_code == 201, answer.text
+    return server
 
 
 @pytest.fixture(scope="session")

@@ -371,30 +371,25 @@ def _add_metrics(app: FastAPI) -> None:
         ["verdict"],
         registry=registry,
     )
-    writes = Gauge(
-        "dpc_writes_in_progress",
-        "Registrations, deletions, restores and imports being worked on",
-        registry=registry,
-    )
-    writes.set_function(lambda: getattr(getattr(app.state, "limiter", None), "writing", 0))
-    processes = Gauge(
-        "dpc_engine_processes",
-        "Engine worker processes answering /align and /detect (0: the service's own process)",
-        registry=registry,
-    )
-    processes.set_function(lambda: getattr(getattr(app.state, "processes", None), "ready", 0))
-    wanted = Gauge(
-        "dpc_engine_processes_wanted",
-        "Engine worker processes meant to answer (server.engine_processes; 0 if they failed)",
-        registry=registry,
-    )
-    wanted.set_function(lambda: getattr(getattr(app.state, "processes", None), "wanted", 0))
-    jobs = Gauge(
-        "dpc_engine_process_jobs",
-        "Alignments and detections the engine worker processes answered",
-        registry=registry,
-    )
-    jobs.set_function(lambda: getattr(getattr(app.state, "processes", None), "jobs", 0))
+    for name, described, holder, field in (
+        ("dpc_writes_in_progress",
+         "Registrations, deletions, restores and imports being worked on", "limiter", "writing"),
+        ("dpc_engine_processes",
+         "Engine worker processes answering /align and /detect (0: the service's own process)",
+         "processes", "ready"),
+        ("dpc_engine_processes_wanted",
+         "Engine worker processes meant to answer (server.engine_processes; 0 if they failed)",
+         "processes", "wanted"),
+        ("dpc_engine_process_jobs",
+         "Alignments and detections the engine worker processes answered", "processes", "jobs"),
+    ):  # fmt: skip
+        _read_at_scrape(Gauge(name, described, registry=registry), app, holder, field)
+
+
+def _read_at_scrape(gauge: Gauge, app: FastAPI, holder: str, field: str) -> None:
+    """``gauge`` reads ``app.state.<holder>.<field>`` when scraped (0 before the lifespan has
+    made the holder)."""
+    gauge.set_function(lambda: getattr(getattr(app.state, holder, None), field, 0))
 
 
 def _document_auth(document: dict[str, Any], settings: Settings) -> None:

@@ -71,7 +71,8 @@ async def get_processes(
     request: Request, catalog: Annotated[Catalog, Depends(get_catalog)]
 ) -> EngineProcesses:
     """The engine's ``align`` and ``detect``, in its worker processes once they are up
-    (``service.api.engine_processes``)."""
+    (``service.api.engine_processes``); through ``catalog``, 503 while the gallery loads, as
+    ``get_engine``."""
     return request.app.state.processes
 
 

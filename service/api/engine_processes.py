@@ -21,6 +21,7 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 from service import memory
+from service.api import logs, startup
 from service.engine.engine import Engine
 from service.errors import StoreUnavailable
 from service.gallery.catalog import Catalog
@@ -126,8 +127,6 @@ def _start(settings: Settings, started: threading.Barrier) -> None:
     """A worker's start: the model, the calibrations and the gallery as the service loads them;
     it ends with the process that spawned it."""
     global _catalog, _seen
-    from service.api import logs, startup
-
     logs.configure(settings.server.log_level, settings.server.log_format)
     memory.fix_mmap_threshold()
     startup.quiet_onnxruntime()

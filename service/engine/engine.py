@@ -362,19 +362,19 @@ class Engine:
             readings = self.set_aside(query, scene)  # 0
         else:
             readings = [as_is(scene, np.random.default_rng(self.settings.seed))]
-        answer, seen = None, scene
+        answer, chosen = None, None
         for reading in readings:
             if answer is not None and answer.fit * answer.coverage >= self.settings.excellent:
                 break
-            answer, seen = self.better(query, reading, answer, seen, whole / len(scene))  # 1-8
+            answer, chosen = self.better(query, reading, answer, chosen, whole / len(scene))  # 1-8
         in_bin = None
         if surroundings and answer.fit * answer.coverage < BIN_BELOW:
             in_bin = self.in_bin(query, scene)  # 0, a bin's floor and walls set aside
             if in_bin is not None:
-                answer, seen = self.better(query, in_bin, answer, seen, whole / len(scene))
+                answer, chosen = self.better(query, in_bin, answer, chosen, whole / len(scene))
         if answer.verdict != "no_match":  # 8. How far to trust it.
-            binned = in_bin is not None and seen is in_bin.points
-            self.judge(answer, min_confidence, query, flatness(seen), binned)
+            binned = in_bin is not None and chosen is in_bin
+            self.judge(answer, min_confidence, query, flatness(chosen.points), binned)
             doubt(answer)  # among look-alikes that fit alike, the label is a guess
         answer.timings_ms = query.clock.total()
         return answer
@@ -403,14 +403,15 @@ class Engine:
         query.clock.lap("surroundings")
         return readings
 
-    def better(self, query, reading, answer, seen, per_point) -> tuple[Alignment, np.ndarray]:
-        """Steps 1-8 on ``reading``: its answer and points where it fits better than ``answer``
-        (``per_point``: the request's points a point of the reading stands for)."""
+    def better(self, query, reading, answer, chosen, per_point) -> tuple[Alignment, Reading]:
+        """Steps 1-8 on ``reading``: its answer and itself where it fits better than ``answer``
+        (of the reading ``chosen``); ``per_point``: the request's points a point of the
+        reading stands for."""
         found = self.align_reading(query, reading)
         found.points_set_aside = round(reading.set_aside * per_point)
         if answer is None or found.fit * found.coverage > answer.fit * answer.coverage:
-            return found, reading.points
-        return answer, seen
+            return found, reading
+        return answer, chosen
 
     def in_bin(self, query: Query, scene: np.ndarray) -> Reading | None:
         """Step 0 once more where no reading fit well: the part in a bin, its floor and walls

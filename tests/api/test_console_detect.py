@@ -14,7 +14,7 @@ import trimesh
 from PIL import Image
 
 from tests.api.test_console import Page, browser  # noqa: F401 - the browser fixture
-from tests.conftest import empty_server
+from tests.conftest import server_holding
 from tests.frames import resting, shoot, spin, table
 
 BOX = (0.08, 0.06, 0.04)
@@ -24,16 +24,9 @@ SMALL = (320, 240, 262.5)  # a quarter of VGA: the same field of view, a quick /
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     """A real server whose gallery holds one box, registered as an STL mesh."""
-    server = empty_server(tmp_path_factory.mktemp("console-detect"))
-    buffer = io.BytesIO()
-    trimesh.creation.box(BOX).export(buffer, file_type="stl")
-    answer = server.client.post(
-        "/references",
-        data={"name": "box-a"},
-        files={"file": ("box-a.stl", buffer.getvalue())},
-        params={"self_check": "false"},
+    server = server_holding(
+        tmp_path_factory.mktemp("console-detect"), {"box-a": trimesh.creation.box(BOX)}
     )
-    assert answer.status_code == 201, answer.text
     yield server
     server.stop()
 

@@ -3,8 +3,6 @@ boxes and ducks on a table and in a bin, as a camera's driver writes them."""
 
 from __future__ import annotations
 
-import io
-
 import numpy as np
 import pytest
 import trimesh
@@ -12,17 +10,11 @@ from scipy.spatial.transform import Rotation
 
 from service.client import Client
 from service.client.cli import main
-from tests.conftest import empty_server
+from tests.conftest import empty_server, server_holding
 from tests.frames import VGA, bin_walls, resting, shoot, spin, table
 from tests.meshes import pybullet_mesh
 
 BOX_A, BOX_B = (0.08, 0.06, 0.04), (0.10, 0.04, 0.03)
-
-
-def stl(mesh: trimesh.Trimesh) -> bytes:
-    buffer = io.BytesIO()
-    mesh.export(buffer, file_type="stl")
-    return buffer.getvalue()
 
 
 @pytest.fixture(scope="module")
@@ -40,15 +32,7 @@ def meshes() -> dict[str, trimesh.Trimesh]:
 @pytest.fixture(scope="module")
 def server(tmp_path_factory, meshes):
     """A real server whose gallery holds the two boxes and the duck, registered as meshes."""
-    server = empty_server(tmp_path_factory.mktemp("detect"))
-    for name, mesh in meshes.items():
-        answer = server.client.post(
-            "/references",
-            data={"name": name},
-            files={"file": (f"{name}.stl", stl(mesh))},
-            params={"self_check": "false"},
-        )
-        assert answer.status_code == 201, answer.text
+    server = server_holding(tmp_path_factory.mktemp("detect"), meshes)
     yield server
     server.stop()
 

@@ -5,8 +5,6 @@ padded rows, rgb and intensity beside x y z, NaN where the camera saw nothing.""
 
 from __future__ import annotations
 
-import io
-
 import numpy as np
 import pytest
 import trimesh
@@ -14,7 +12,7 @@ import trimesh
 from service.client import Client
 from service.client.cli import main
 from service.client.rosbag import BagError, is_bag, read_bag_frame
-from tests.conftest import empty_server
+from tests.conftest import server_holding
 from tests.frames import resting, shoot, spin, table
 
 rosbags = pytest.importorskip("rosbags")
@@ -171,16 +169,7 @@ def test_the_cli_refuses_a_bag_without_its_frame_before_sending_it(tmp_path, cap
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    server = empty_server(tmp_path_factory.mktemp("rosbag"))
-    buffer = io.BytesIO()
-    trimesh.creation.box(BOX).export(buffer, file_type="stl")
-    answer = server.client.post(
-        "/references",
-        data={"name": "box-a"},
-        files={"file": ("box-a.stl", buffer.getvalue())},
-        params={"self_check": "false"},
-    )
-    assert answer.status_code == 201, answer.text
+    server = server_holding(tmp_path_factory.mktemp("rosbag"), {"box-a": trimesh.creation.box(BOX)})
     yield server
     server.stop()
 
