@@ -57,7 +57,7 @@ class DistanceField:
         cells = np.rint((points - self.origin) / self.voxel).astype(np.intp)
         np.clip(cells, 0, self._last, out=cells)  # past the edge: the edge voxel
         flat = cells @ self._strides
-        return self.nearest.reshape(-1)[flat]
+        return np.take(self.nearest, flat)  # flattened; a third of indexing's time
 
     @cached_property
     def _last(self) -> np.ndarray:

@@ -30,6 +30,10 @@ from service.engine.tuning import BACK_FACING, BEHIND, CLOSE, CLOSE_RAD, SURFACE
 
 TUKEY = 4.685  # Tukey's constant: 95 % efficiency on Gaussian residuals
 DAMPING = 1e-6  # relative to the system's trace
+DIAGONAL = np.arange(6)
+# the cross-product matrix's entries: K[r, c] = sign * k[axis]
+CROSS_ROWS, CROSS_COLS = np.array([0, 0, 1, 1, 2, 2]), np.array([1, 2, 0, 2, 0, 1])
+CROSS_AXES, CROSS_SIGNS = np.array([2, 1, 2, 0, 1, 0]), np.array([-1.0, 1, 1, -1, -1, 1])
 
 
 @dataclass(frozen=True)
@@ -69,22 +73,36 @@ class Surface:
         of a hollow brick's full-cloud points lay beyond the tolerance from their nearest
         sample's tangent patch, 4-5 % from the facing one's.
 
-        With ``camera`` (a point in the model frame), the nearest of those that do not face
-        away from it (``BACK_FACING``; the nearest where they all do)."""
-        candidates = self.neighbours[self.field.lookup(points)]  # (..., k)
-        offsets = points[..., None, :] - self.points[candidates]
+        With ``camera`` (a point in the model frame; or (S, 3), one each of the S leading rows
+        of ``points``), the nearest of those that do not face away from it (``BACK_FACING``;
+        the nearest where they all do)."""
+        # np.take: a third of indexing's time here (docs/decisions.md#refinements-together)
+        candidates = np.take(self.neighbours, self.field.lookup(points), axis=0)  # (..., k)
+        offsets = points[..., None, :] - np.take(self.points, candidates, axis=0)
         square = np.einsum("...ki,...ki->...k", offsets, offsets)
         if facing:
-            along = np.einsum("...ki,...ki->...k", offsets, self.normals[candidates])
+            along = np.einsum(
+                "...ki,...ki->...k", offsets, np.take(self.normals, candidates, axis=0)
+            )
             behind = along < -BEHIND * self.spacing
             square[behind & ~behind.all(axis=-1, keepdims=True)] = np.inf
         if camera is not None:
-            sight = camera - self.points[candidates]
-            toward = np.einsum("...ki,...ki->...k", sight, self.normals[candidates])
-            away = toward < -BACK_FACING * np.linalg.norm(sight, axis=-1)
+            away = self.facing_away(np.asarray(camera, np.float64))
+            if away.ndim == 1:
+                away = np.take(away, candidates)
+            else:  # a camera each of the leading rows of ``points``
+                rows = np.arange(len(away)).reshape(-1, *([1] * (candidates.ndim - 1)))
+                away = away[rows, candidates]
             square[away & ~away.all(axis=-1, keepdims=True)] = np.inf
         best = np.argmin(square, axis=-1)
         return np.take_along_axis(candidates, best[..., None], axis=-1)[..., 0]
+
+    def facing_away(self, camera: np.ndarray) -> np.ndarray:
+        """(..., N) whether each sample faces away from ``camera`` (..., 3), model frame
+        (``BACK_FACING``): the same for every point paired with it, so asked once a sample."""
+        sight = camera[..., None, :] - self.points
+        toward = np.einsum("...ni,ni->...n", sight, self.normals)
+        return toward < -BACK_FACING * np.linalg.norm(sight, axis=-1)
 
 
 def rotation_vector(w: np.ndarray) -> np.ndarray:
@@ -95,6 +113,19 @@ def rotation_vector(w: np.ndarray) -> np.ndarray:
     k = w / angle
     cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
+
+
+@dataclass(frozen=True)
+class Start:
+    """One pose to refine (``icp_many``): where it starts, on which surface, how."""
+
+    surface: Surface
+    rotation: np.ndarray
+    translation: np.ndarray
+    noise: float  # the smallest residual scale the kernel assumes (the sensor's noise)
+    gate: float  # the largest point-to-point distance of a pair used at all
+    iterations: int = 20
+    viewpoint: np.ndarray | None = None  # where the camera was (scene frame), if known
 
 
 def icp(
@@ -126,8 +157,8 @@ def icp(
             nearest = surface.nearest(model, camera=camera)
         else:
             nearest = surface.field.lookup(model)
-        offset = model - surface.points[nearest]
-        normals = surface.normals[nearest]
+        offset = model - np.take(surface.points, nearest, axis=0)
+        normals = np.take(surface.normals, nearest, axis=0)
         near = np.einsum("ij,ij->i", offset, offset) < gate**2
         if near.sum() < 6:
             break
@@ -152,18 +183,182 @@ def icp(
     return rotation, translation, done
 
 
+def icp_many(
+    scene: np.ndarray,
+    starts: list[Start],
+    tolerance_rad: float = 5e-4,
+    tolerance: float = 0.05,
+) -> list[tuple[np.ndarray, np.ndarray, int]]:
+    """Each start's pose refined on the same ``scene`` points (M, 3), or each on its own
+    (H, M, 3), all in one loop: each runs its
+    own iterations and stops by its own test, as ``icp`` alone would, and gets the same pose
+    to rounding; the arithmetic of an iteration is done for all at once, which on a few
+    hundred points costs little more than for one (docs/decisions.md#refinements-together).
+    Each start's refined rotation, translation and the iterations it ran. One start is
+    refined by ``icp``: its arrays of one pose cost less than the stacks' of one."""
+    scene = np.asarray(scene, np.float64)
+    if len(starts) == 1:
+        (s,) = starts
+        return [
+            icp(
+                scene if scene.ndim == 2 else scene[0],
+                s.surface,
+                s.rotation,
+                s.translation,
+                s.noise,
+                s.gate,
+                s.iterations,
+                tolerance_rad,
+                tolerance,
+                s.viewpoint,
+            )
+        ]
+    out: list = [None] * len(starts)
+    # the running starts' state, compacted as they stop
+    ids = np.arange(len(starts))
+    rotation = np.array([s.rotation for s in starts], np.float64).reshape(-1, 3, 3)
+    translation = np.array([s.translation for s in starts], np.float64).reshape(-1, 3)
+    noise = np.array([s.noise for s in starts], np.float64)
+    gate = np.array([s.gate for s in starts], np.float64) ** 2
+    budget = np.array([s.iterations for s in starts], int)
+    precise = np.zeros(len(starts), bool)
+    iteration = 0
+    while len(ids):
+        iteration += 1
+        model = np.matmul(scene - translation[:, None], rotation)
+        paired, normals = _pairs(starts, ids, model, precise, rotation, translation)
+        offset = model - paired
+        near = np.einsum("hij,hij->hi", offset, offset) < gate[:, None]
+        counts = near.sum(axis=1)
+        # too few pairs: it stops where it is, as does one whose iterations ran out
+        stop = counts < 6
+        if not stop.all():
+            # the running starts with pairs enough (a view of all while none has stopped)
+            live = slice(None) if not stop.any() else ~stop
+            offset, normals, model, near = offset[live], normals[live], model[live], near[live]
+            residual = np.einsum("hij,hij->hi", offset, normals)
+            spread = np.maximum(1.4826 * _medians(np.abs(residual), near), noise[live])
+            u = residual / (TUKEY * spread[:, None])
+            kept = np.abs(u) < 1
+            weight = np.where(kept if near.all() else kept & near, (1 - u**2) ** 2, 0.0)
+            jacobian = _jacobian(model, normals)  # (H, M, 6)
+            weighted = (jacobian * weight[..., None]).transpose(0, 2, 1)
+            system = weighted @ jacobian
+            trace = np.trace(system, axis1=1, axis2=2)
+            system[:, DIAGONAL, DIAGONAL] += (DAMPING * trace + 1e-12)[:, None]
+            step = -np.linalg.solve(system, weighted @ residual[..., None])[..., 0]
+            # model points m -> C m + d
+            correction = _rodrigues(step[:, :3])
+            turned_to = rotation[live] @ correction.transpose(0, 2, 1)
+            rotation[live] = turned_to
+            translation[live] -= (turned_to @ step[:, 3:, None])[..., 0]
+            turned = np.sqrt(np.einsum("hi,hi->h", step[:, :3], step[:, :3]))
+            moved = np.sqrt(np.einsum("hi,hi->h", step[:, 3:], step[:, 3:]))
+            close = (turned < CLOSE_RAD) & (moved < CLOSE * noise[live])
+            settled = close & precise[live] & (turned < tolerance_rad)
+            stop[live] = settled & (moved < tolerance * noise[live])
+            precise[live] |= close
+        stop |= budget == iteration
+        if stop.any():
+            for h in np.flatnonzero(stop):
+                out[ids[h]] = (rotation[h], translation[h], iteration)
+            keep = ~stop
+            ids, rotation, translation = ids[keep], rotation[keep], translation[keep]
+            noise, gate, budget, precise = noise[keep], gate[keep], budget[keep], precise[keep]
+            scene = scene if scene.ndim == 2 else scene[keep]
+    return out
+
+
+def _pairs(
+    starts: list[Start],
+    active: np.ndarray,
+    model: np.ndarray,
+    precise: np.ndarray,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(H, M, 3) the surface sample each model point pairs with, and its normal: the distance
+    field's own answer while far; corrected among neighbours (facing the camera) once close.
+    The starts on one surface alike are looked up together."""
+    groups: dict[tuple, list[int]] = {}
+    for slot, h in enumerate(active):
+        key = (id(starts[h].surface), bool(precise[slot]), starts[h].viewpoint is None)
+        groups.setdefault(key, []).append(slot)
+    if len(groups) == 1:  # no copies: one pose, or the turns of one
+        (slots,) = groups.values()
+        return _nearest(starts, active, slots, model, precise, rotation, translation)
+    paired, normals = np.empty_like(model), np.empty_like(model)
+    for slots in groups.values():
+        paired[slots], normals[slots] = _nearest(
+            starts, active, slots, model[slots], precise, rotation, translation
+        )
+    return paired, normals
+
+
+def _nearest(
+    starts: list[Start],
+    active: np.ndarray,
+    slots: list[int],
+    model: np.ndarray,
+    precise: np.ndarray,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The samples, and their normals, that ``model`` (S, M, 3), the points of the running
+    ``slots`` of one surface, pair with (``_pairs``)."""
+    start = starts[active[slots[0]]]
+    surface = start.surface
+    if not precise[slots[0]]:
+        nearest = surface.field.lookup(model)
+    elif start.viewpoint is None:
+        nearest = surface.nearest(model)
+    else:
+        viewpoints = np.array([starts[active[slot]].viewpoint for slot in slots])
+        toward = viewpoints - translation[slots]
+        cameras = np.einsum("hi,hij->hj", toward, rotation[slots])  # (v - t) @ R, each
+        nearest = surface.nearest(model, camera=cameras)
+    return np.take(surface.points, nearest, axis=0), np.take(surface.normals, nearest, axis=0)
+
+
+def _rodrigues(w: np.ndarray) -> np.ndarray:
+    """(H, 3, 3) the rotations by ``|w|`` about each of ``w`` (H, 3): cos I + sin K + (1 - cos)
+    k k^T, K the cross-product matrix of the unit axis k (``rotation_vector`` for many)."""
+    angle = np.sqrt(np.einsum("hi,hi->h", w, w))
+    k = w / np.where(angle < 1e-12, 1.0, angle)[:, None]  # no turn: k ~ 0, the identity
+    cos, sin = np.cos(angle)[:, None, None], np.sin(angle)[:, None, None]
+    cross = np.zeros((len(w), 3, 3))
+    cross[:, CROSS_ROWS, CROSS_COLS] = k[:, CROSS_AXES] * CROSS_SIGNS
+    return cos * np.eye(3) + sin * cross + (1 - cos) * (k[:, :, None] * k[:, None, :])
+
+
 def _jacobian(model: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """(M, 6): each pair's [m x n, n], the derivative of its point-to-plane residual by the
-    small rotation and the translation (written out: np.cross costs more than the loop's
+    """(..., M, 6): each pair's [m x n, n], the derivative of its point-to-plane residual by
+    the small rotation and the translation (written out: np.cross costs more than the loop's
     arithmetic on a few hundred points)."""
-    jacobian = np.empty((len(model), 6))
-    mx, my, mz = model.T
-    nx, ny, nz = normals.T
-    jacobian[:, 0] = my * nz - mz * ny
-    jacobian[:, 1] = mz * nx - mx * nz
-    jacobian[:, 2] = mx * ny - my * nx
-    jacobian[:, 3:] = normals
+    jacobian = np.empty((*model.shape[:-1], 6))
+    mx, my, mz = model[..., 0], model[..., 1], model[..., 2]
+    nx, ny, nz = normals[..., 0], normals[..., 1], normals[..., 2]
+    jacobian[..., 0] = my * nz - mz * ny
+    jacobian[..., 1] = mz * nx - mx * nz
+    jacobian[..., 2] = mx * ny - my * nx
+    jacobian[..., 3:] = normals
     return jacobian
+
+
+def _medians(values: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """(H,) the median of each row of ``values`` (H, M) over its ``kept`` entries (at least
+    six a row): those sorted first, the rest pushed past them."""
+    half = values.shape[1] // 2
+    if kept.all():  # the common case: one partition for all rows
+        kth = [half - 1, half] if values.shape[1] % 2 == 0 else [half]
+        part = np.partition(values, kth, axis=1)
+        return part[:, half] if len(kth) == 1 else 0.5 * (part[:, half - 1] + part[:, half])
+    ordered = np.sort(np.where(kept, values, np.inf), axis=1)
+    counts = kept.sum(axis=1)
+    rows = np.arange(len(values))
+    upper = ordered[rows, counts // 2]
+    lower = ordered[rows, (counts - 1) // 2]
+    return np.where(counts % 2, upper, 0.5 * (lower + upper))
 
 
 def _median(values: np.ndarray) -> float:

@@ -8,6 +8,7 @@ verified hypotheses are refined, and whether more parts are rescued when none fi
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,13 +18,14 @@ from service.engine.answer import CandidateFit
 from service.engine.entry import Entry
 from service.engine.fits import Fit
 from service.engine.hypotheses import Hypotheses
-from service.engine.icp import icp
+from service.engine.icp import Start, icp_many
 from service.engine.normalize import radius, subsample
 from service.engine.principal_axes import Frame
 from service.engine.query import Observed, Query
 from service.engine.symmetry import FINE_DEG, apart
 from service.engine.tuning import (
     ALIKE,
+    ALONE_FROM,
     DIFFERENT_DEG,
     ENOUGH_BEHIND,
     EXPECTED,
@@ -174,36 +176,52 @@ class Search:
     def refine_best_first(self, fits: list[Fit], plan: Plan) -> None:
         """Refine the best of ``fits`` (sorted, best first) within the plan's budget; eq. (4)'s
         sure first choice in any case; and with ``rescue``, more parts where none fits well."""
-        refined, per_row = self.refine_budget(fits, plan.budget)
-        if plan.first is not None and plan.first not in per_row:
-            # its best pose too: of two parts of nearly one shape, the right one's refined pose
-            # fits better (docs/decisions.md#refine)
-            for mine in [f for f in fits if f.row == plan.first][:FIRST_REFINED]:
+        planned = self.within_budget(fits, plan.budget)
+        # its best pose too: of two parts of nearly one shape, the right one's refined pose
+        # fits better (docs/decisions.md#refine)
+        firsts = [f for f in fits if f.row == plan.first][:FIRST_REFINED]
+        sure = firsts if all(f.row != plan.first for f in planned) else []
+        refined = self.refine_budget(planned, sure)
+        per_row: dict[int, int] = {}
+        for candidate in refined:
+            per_row[candidate.row] = per_row.get(candidate.row, 0) + 1
+        if firsts and plan.first not in per_row:  # planned, but the turn did not reach it
+            for mine in firsts:
                 per_row[plan.first] = per_row.get(plan.first, 0) + 1
                 self.refine_one(mine)
                 refined.append(mine)
         if plan.rescue and self.settings.rescued_parts:
             self.rescue(fits, per_row, refined)
 
-    def refine_budget(self, fits: list[Fit], budget: int) -> tuple[list[Fit], dict[int, int]]:
-        """The best ``budget`` hypotheses refined (``PER_PART`` a part at most), leaving out
-        those far below the best before refining; stopping once one is excellent and the next
-        looks clearly worse. The refined fits, and how many of each row."""
-        per_row: dict[int, int] = {}
-        refined: list[Fit] = []
+    def within_budget(self, fits: list[Fit], budget: int) -> list[Fit]:
+        """The best ``budget`` of ``fits`` (``PER_PART`` a part at most), leaving out those far
+        below the best: what ``refine_budget`` refines in turn."""
+        planned: list[Fit] = []
         floor = FAR_BELOW * fits[0].score
         for candidate in fits:
-            if len(refined) == budget or candidate.score < floor:
+            if len(planned) == budget or candidate.score < floor:
                 break
-            if per_row.get(candidate.row, 0) == PER_PART:
-                continue
-            best = max((f.score for f in refined), default=0.0)
-            if best >= self.settings.excellent and candidate.score < ENOUGH_BEHIND * best:
-                break
-            per_row[candidate.row] = per_row.get(candidate.row, 0) + 1
-            self.refine_one(candidate)
-            refined.append(candidate)
-        return refined, per_row
+            if sum(f.row == candidate.row for f in planned) < PER_PART:
+                planned.append(candidate)
+        return planned
+
+    def refine_budget(self, planned: list[Fit], sure: list[Fit]) -> list[Fit]:
+        """``planned`` refined in turn, stopping once one is excellent and the next looks
+        clearly worse; ``sure`` refined alongside the first. The refined fits. The first
+        alone where it verified well (``ALONE_FROM``): an answer's then mostly refines to
+        excellent, and ends the turn; else all together."""
+        excellent = self.settings.excellent
+
+        def stops(candidate: Fit, best: float) -> bool:
+            return best >= excellent and candidate.score < ENOUGH_BEHIND * best
+
+        head = 1 if planned and planned[0].score >= ALONE_FROM else len(planned)
+        refined = self.refine_in_turn(planned[:head], stops, along=sure)
+        turn = refined[len(sure) :]
+        if len(turn) == head:
+            best = max((f.score for f in turn), default=0.0)
+            turn += self.refine_in_turn(planned[head:], stops, best)
+        return turn + sure
 
     def rescue(self, fits: list[Fit], per_row: dict[int, int], refined: list[Fit]) -> None:
         """Where no refined fit fits well (``RESCUE_BELOW``), the best ``RESCUE_EACH``
@@ -213,22 +231,53 @@ class Search:
         refinement (docs/decisions.md#refine)."""
         settings = self.settings
         best = max((f.score for f in refined), default=0.0)
+        if best >= RESCUE_BELOW:
+            return
         rescued: dict[int, int] = {}
-        tried: list[Fit] = []
+        planned: list[Fit] = []
         for candidate in fits:
-            if best >= RESCUE_BELOW:
-                break
             if candidate.row in per_row or rescued.get(candidate.row, 0) == RESCUE_EACH:
                 continue
             if candidate.row not in rescued and len(rescued) == settings.rescued_parts:
                 continue
             rescued[candidate.row] = rescued.get(candidate.row, 0) + 1
-            self.refine_one(candidate, iterations=max(1, settings.icp_iterations // 2))
-            tried.append(candidate)
-            best = max(best, candidate.score)
+            planned.append(candidate)
+        tried = self.refine_in_turn(
+            planned,
+            lambda _, best: best >= RESCUE_BELOW,
+            best,
+            iterations=max(1, settings.icp_iterations // 2),
+        )
         winner = max(tried, key=lambda f: f.score, default=None)
         if winner is not None and winner.score > max((f.score for f in refined), default=0.0):
             self.refine_one(winner)
+
+    def refine_in_turn(
+        self,
+        planned: list[Fit],
+        stops,
+        best: float = 0.0,
+        iterations: int | None = None,
+        along: list[Fit] | None = None,
+    ) -> list[Fit]:
+        """``planned`` refined in turn until ``stops(next, best refined score so far)``, and
+        ``along`` in any case; those refined (``along`` first). All are refined together
+        (``refine_all``), ``planned`` on copies, and those the turn never reaches left as they
+        were: a refinement does not depend on the others', so each is what refining them one
+        by one would give, in less time (docs/decisions.md#refinements-together)."""
+        along = along or []
+        if planned and stops(planned[0], best):
+            planned = []
+        trials = [dataclasses.replace(candidate) for candidate in planned]
+        self.refine_all(along + trials, iterations)
+        done = list(along)
+        for candidate, trial in zip(planned, trials, strict=True):
+            if stops(candidate, best):
+                break
+            vars(candidate).update(vars(trial))
+            done.append(candidate)
+            best = max(best, candidate.score)
+        return done
 
     def hypotheses_of(self, entry: Entry, chosen: list[str]) -> Hypotheses:
         settings = self.settings
@@ -295,16 +344,30 @@ class Search:
         ]
 
     def refine_one(self, candidate: Fit, iterations: int | None = None) -> None:
-        """Point-to-plane ICP from the fit's pose (``iterations``: the setting's unless
-        given), then verified again on more points."""
-        entry = self.entry(candidate.row)
-        rotation, translation = self.icp(candidate, iterations or self.settings.icp_iterations)
-        made = Hypotheses(
-            rotation[None], translation[None], (candidate.source,), np.array([candidate.view])
-        )
-        (checked,) = self.check(candidate.row, entry, made, count=EXPECTED)
-        candidate.rotation, candidate.translation = rotation, translation
-        candidate.fit, candidate.coverage, candidate.refined = checked.fit, checked.coverage, True
+        """Point-to-plane ICP from the fit's pose, then verified again on more points."""
+        self.refine_all([candidate], iterations)
+
+    def refine_all(self, candidates: list[Fit], iterations: int | None = None) -> None:
+        """Each fit's pose refined by point-to-plane ICP (``iterations``: the setting's unless
+        given), all together, then verified again on more points, each part's together."""
+        if not candidates:
+            return
+        refined = self.icp_all(candidates, iterations or self.settings.icp_iterations)
+        for candidate, (rotation, translation) in zip(candidates, refined, strict=True):
+            candidate.rotation, candidate.translation = rotation, translation
+        for row in dict.fromkeys(c.row for c in candidates):
+            mine = [c for c in candidates if c.row == row]
+            made = Hypotheses(
+                np.stack([c.rotation for c in mine]),
+                np.stack([c.translation for c in mine]),
+                tuple(c.source for c in mine),
+                np.array([c.view for c in mine]),
+            )
+            for candidate, checked in zip(
+                mine, self.check(row, self.entry(row), made, count=EXPECTED), strict=True
+            ):
+                candidate.fit, candidate.coverage = checked.fit, checked.coverage
+                candidate.refined = True
 
     # --- the best pose, finished ----------------------------------------------------------
 
@@ -319,24 +382,31 @@ class Search:
             self.clock.lap("refine")
         return fits
 
-    def icp(
-        self, candidate: Fit, iterations: int, points: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """The fit's pose refined by point-to-plane ICP on ``points`` (the refinement's sample
-        unless given); ``candidate.settled`` says whether it stopped before ``iterations``."""
-        entry = self.entry(candidate.row)
-        rotation, translation, done = icp(
-            self.refine_on if points is None else points,
-            entry.surface,
-            candidate.rotation,
-            candidate.translation,
-            noise=0.25 * self.tolerance(entry),
-            gate=5 * self.tolerance(entry),
-            iterations=iterations,
-            viewpoint=self.camera_of(entry, candidate),
-        )
-        candidate.settled = done < iterations
-        return rotation, translation
+    def icp_all(
+        self, candidates: list[Fit], iterations: int, points: np.ndarray | None = None
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each fit's pose refined by point-to-plane ICP on ``points`` (the refinement's
+        sample unless given), all together (``icp_many``); each ``candidate.settled`` says
+        whether it stopped before ``iterations``."""
+        starts = []
+        for candidate in candidates:
+            entry = self.entry(candidate.row)
+            tolerance = self.tolerance(entry)
+            starts.append(
+                Start(
+                    entry.surface,
+                    candidate.rotation,
+                    candidate.translation,
+                    noise=0.25 * tolerance,
+                    gate=5 * tolerance,
+                    iterations=iterations,
+                    viewpoint=self.camera_of(entry, candidate),
+                )
+            )
+        refined = icp_many(self.refine_on if points is None else points, starts)
+        for candidate, (_, _, done) in zip(candidates, refined, strict=True):
+            candidate.settled = done < iterations
+        return [(rotation, translation) for rotation, translation, _ in refined]
 
     def camera_of(self, entry: Entry, candidate: Fit) -> np.ndarray | None:
         """Where the camera was, in the scene: the viewpoint, if told; else, for a pose
@@ -354,7 +424,7 @@ class Search:
         extra = self.settings.polish_iterations
         if not extra or not winner.refined or winner.settled:
             return False
-        winner.rotation, winner.translation = self.icp(winner, extra, self.observed)
+        ((winner.rotation, winner.translation),) = self.icp_all([winner], extra, self.observed)
         return True
 
     def flip(self, fits: list[Fit]) -> list[Fit]:
@@ -376,9 +446,10 @@ class Search:
         for k in range(len(turns)):
             if entry.symmetry.distance_deg(rotations[k], best.rotation) <= DIFFERENT_DEG:
                 continue  # the same pose: a symmetry of the part
-            candidate = Fit(best.row, rotations[k], translations[k], FLIP_SOURCE, views[k], 0, 0)
-            self.refine_one(candidate)
-            flipped.append(candidate)
+            flipped.append(
+                Fit(best.row, rotations[k], translations[k], FLIP_SOURCE, views[k], 0, 0)
+            )
+        self.refine_all(flipped)
         top = max(flipped, key=lambda f: f.score, default=None)
         return fits if top is None or top.score <= best.score else [top, *fits]
 
@@ -401,11 +472,10 @@ class Search:
         # coverage against the view each turned pose expects, not the unturned pose's
         views = entry.views.turned(best.view, turns)
         order = self.near_order(entry, best, rotations, translations, turns)
-        turned = []
-        for k in order:
-            candidate = Fit(best.row, rotations[k], translations[k], NEAR_SOURCE, views[k], 0, 0)
-            self.refine_one(candidate)
-            turned.append(candidate)
+        turned = [
+            Fit(best.row, rotations[k], translations[k], NEAR_SOURCE, views[k], 0, 0) for k in order
+        ]
+        self.refine_all(turned)
         alike = [best] + [t for t in turned if t.score >= ALIKE * best.score]
         if len(alike) == 1:
             return fits

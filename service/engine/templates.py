@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.engine.entry import Entry
-from service.engine.icp import icp
+from service.engine.icp import Start, icp_many
 from service.engine.normalize import subsample
 from service.engine.projection import DepthImage
 from service.engine.tuning import (
@@ -84,10 +84,9 @@ def place_views(
     scale = entry.reference.scale
     found = screened(entry, points, viewpoint, spacing, rng, camera)
     fine = Occupancy.around(points, tolerance * scale, spacing)
-    poses = [
-        refined(entry, points, p, viewpoint, fine, camera, tolerance * scale)
-        for p in found[:TEMPLATE_REFINED]
-    ]
+    poses = refined(
+        entry, points, found[:TEMPLATE_REFINED], viewpoint, fine, camera, tolerance * scale
+    )
     return sorted(poses, key=lambda p: -p.covered)
 
 
@@ -116,9 +115,10 @@ def screened(
     for seed in seeds(points, SEED_SPACING * scale, rng)[:most_seeds]:
         scene_basis = camera_basis(viewpoint - seed)
         # R = B_scene^T T B_model: the view's camera direction onto the line of sight
-        rotations = np.einsum("ji,tjk,vkl->vtil", scene_basis, turns, model_bases)
+        rotations = np.matmul((scene_basis.T @ turns)[None], model_bases[:, None])  # (V, T)
         translations = seed - np.einsum("vtij,vj->vti", rotations, views.centroids[chosen])
-        placed = np.einsum("vtij,vpj->vtpi", rotations, expected) + translations[:, :, None]
+        placed = np.matmul(expected[:, None], rotations.transpose(0, 1, 3, 2))  # (V, T, P)
+        placed += translations[:, :, None]
         if camera is not None:  # the depth image's word, each pose snapped onto its depth
             covered, shift = camera.agreement(placed, TEMPLATE_TOLERANCE * scale)
             rays = translations + np.einsum("vtij,vj->vti", rotations, views.centroids[chosen])
@@ -169,35 +169,45 @@ def likeliest(
 def refined(
     entry: Entry,
     points: np.ndarray,
-    pose: Placed,
+    poses: list[Placed],
     viewpoint: np.ndarray,
     fine: Occupancy,
     camera: DepthImage | None,
     tolerance: float,
-) -> Placed:
-    """A placed view refined by ICP on the points within reach of it, and how much of what
-    the camera should see of it then has an observed point near it (``fine``), less the share
-    the camera saw through."""
+) -> list[Placed]:
+    """Placed views each refined by ICP on the points within reach of it (those of as many
+    points together, ``icp_many``), and how much of what the camera should see of it then has
+    an observed point near it (``fine``), less the share the camera saw through."""
     scale = entry.reference.scale
-    centre = pose.rotation @ entry.frame.centroid + pose.translation
-    near = points[np.linalg.norm(points - centre, axis=1) <= 1.5 * scale]
-    if len(near) < 16:
-        return pose
-    near = near[subsample(near, TEMPLATE_ICP_POINTS, np.random.default_rng(0))]
-    rotation, translation, _ = icp(
-        near,
-        entry.surface,
-        pose.rotation,
-        pose.translation,
-        noise=0.01 * scale,
-        gate=0.2 * scale,
-        iterations=20,
-        viewpoint=viewpoint,
-    )
-    toward = (viewpoint - translation) @ rotation  # the camera's direction, model frame
-    view = int(entry.views.nearest(toward[None])[0])
-    expected = entry.surface.points[entry.expected[view]] @ rotation.T + translation
-    if camera is not None:
-        score = camera.agreement(expected, tolerance, THROUGH_WEIGHT)[0]
-        return Placed(rotation, translation, float(score))
-    return Placed(rotation, translation, float(fine.near(expected).mean()))
+    out = list(poses)
+    groups: dict[int, list[tuple[int, np.ndarray]]] = {}  # by how many points: pose, points
+    for k, pose in enumerate(poses):
+        centre = pose.rotation @ entry.frame.centroid + pose.translation
+        near = points[np.linalg.norm(points - centre, axis=1) <= 1.5 * scale]
+        if len(near) >= 16:
+            near = near[subsample(near, TEMPLATE_ICP_POINTS, np.random.default_rng(0))]
+            groups.setdefault(len(near), []).append((k, near))
+    for group in groups.values():
+        starts = [
+            Start(
+                entry.surface,
+                poses[k].rotation,
+                poses[k].translation,
+                noise=0.01 * scale,
+                gate=0.2 * scale,
+                iterations=20,
+                viewpoint=viewpoint,
+            )
+            for k, _ in group
+        ]
+        scenes = np.stack([near for _, near in group])
+        for (k, _), (rotation, translation, _) in zip(group, icp_many(scenes, starts), strict=True):
+            toward = (viewpoint - translation) @ rotation  # the camera's direction, model frame
+            view = int(entry.views.nearest(toward[None])[0])
+            expected = entry.surface.points[entry.expected[view]] @ rotation.T + translation
+            if camera is not None:
+                score = camera.agreement(expected, tolerance, THROUGH_WEIGHT)[0]
+            else:
+                score = fine.near(expected).mean()
+            out[k] = Placed(rotation, translation, float(score))
+    return out

@@ -53,6 +53,9 @@ FIELD_MARGIN = 0.3  # the field reaches this share of the scale beyond the bound
 
 # --- 7. Refine (docs/decisions.md#refine) ---------------------------------------------------------
 WHOLE_REFINED = 2  # hypotheses refined in each whole-part pass
+# a pass's best hypothesis verifying this well is refined alone first (an answer's mostly
+# refines to excellent, which ends the pass); below, the pass's are refined together
+ALONE_FROM = 0.6
 ENOUGH_BEHIND = 0.8  # a hypothesis this far below an excellent refined one is not refined
 FAR_BELOW = 0.5  # nor one below this share of the best hypothesis before refining
 PER_PART = 2  # hypotheses refined of one part in a pass

@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from service.engine.distance_field import DistanceField
-from service.engine.icp import Surface, icp
+from service.engine.icp import Start, Surface, icp, icp_many
 from service.engine.normalize import radius
 from service.engine.normals import estimate_normals, mesh_normals, orient_by_views
 from service.engine.principal_axes import Frame
@@ -157,6 +157,63 @@ def test_point_to_plane_icp_converges_from_ten_degrees_on_a_plane_rich_part(brac
     assert angle_deg(r, rotation) < 0.1
     assert np.linalg.norm(t - translation) < 0.002 * scale
     assert iterations < 20  # it stopped by its convergence test
+
+
+def test_poses_refined_together_are_those_refined_one_by_one(bracket):
+    """``icp_many`` runs each start's own iterations and stopping test: starts on two
+    surfaces (the bracket's mesh and its cloud), told a camera or not, with their own budgets,
+    one too far to pair with anything, give the poses and iteration counts ``icp`` gives each
+    alone. (On a surface that does not pin the pose, a cylinder for the bracket's points, a
+    rounding's difference grows without bound, alone or together.)"""
+    scanned = surface_of(l_bracket(), from_mesh=False)
+    rotation = Rotation.random(random_state=4).as_matrix()
+    translation = np.array([0.1, 0.0, 0.4])
+    scene = sample_surface_faces(l_bracket(), 384, 9)[0] @ rotation.T + translation
+    rng = np.random.default_rng(3)
+    scale = radius(bracket.points)
+    starts = []
+    for k, surface in enumerate([bracket, bracket, scanned, bracket, scanned, bracket]):
+        turn = Rotation.from_rotvec(rng.normal(size=3) * 0.15).as_matrix()
+        shift = translation + rng.normal(scale=0.05 * scale, size=3)
+        if k == 5:
+            shift = translation + 10 * scale  # no pair within the gate: stops at once
+        camera = None if k % 2 else translation + np.array([0.0, 0.0, -0.5])
+        starts.append(
+            Start(surface, turn @ rotation, shift, 1e-3 * scale, 0.3 * scale, 6 + 4 * k, camera)
+        )
+    together = icp_many(scene, starts)
+    for start, (r, t, done) in zip(starts, together, strict=True):
+        alone = icp(
+            scene,
+            start.surface,
+            start.rotation,
+            start.translation,
+            start.noise,
+            start.gate,
+            start.iterations,
+            viewpoint=start.viewpoint,
+        )
+        assert done == alone[2]
+        np.testing.assert_allclose(r, alone[0], atol=1e-9)
+        np.testing.assert_allclose(t, alone[1], atol=1e-9)
+    assert together[5][2] == 1  # the one too far stopped where it was
+    np.testing.assert_array_equal(together[5][1], starts[5].translation)
+    for start, (r, _, _) in zip(starts[:5], together, strict=False):  # the others did refine
+        assert angle_deg(r, rotation) < 0.5 * angle_deg(start.rotation, rotation)
+    assert icp_many(scene, []) == []
+
+
+def test_a_camera_for_each_row_of_points_is_each_rows_own(bracket):
+    """``Surface.nearest`` told (S, 3) cameras for (S, M, 3) points pairs each row as one
+    camera for that row alone would."""
+    rng = np.random.default_rng(5)
+    rows = bracket.points[rng.integers(0, len(bracket.points), (3, 200))]
+    rows = rows + rng.normal(scale=0.3 * bracket.spacing, size=rows.shape)
+    cameras = rng.normal(size=(3, 3)) * 0.3
+    together = bracket.nearest(rows, camera=cameras)
+    for row, camera, mine in zip(rows, cameras, together, strict=True):
+        np.testing.assert_array_equal(mine, bracket.nearest(row, camera=camera))
+    assert not np.array_equal(together[0], bracket.nearest(rows[0]))  # the camera mattered
 
 
 def test_refinement_told_the_viewpoint_pairs_no_point_with_a_wall_facing_away():
