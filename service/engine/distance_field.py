@@ -55,7 +55,8 @@ class DistanceField:
     def lookup(self, points: np.ndarray) -> np.ndarray:
         """Index of the reference point nearest to each of ``points`` (..., 3), model frame."""
         cells = np.rint((points - self.origin) / self.voxel).astype(np.intp)
-        np.clip(cells, 0, self._last, out=cells)  # past the edge: the edge voxel
+        # past the edge: the edge voxel (the ufuncs themselves: np.clip's wrapper costs more)
+        np.minimum(np.maximum(cells, 0, out=cells), self._last, out=cells)
         flat = cells @ self._strides
         return np.take(self.nearest, flat)  # flattened; a third of indexing's time
 

@@ -618,9 +618,7 @@ class Engine:
             return None
         mine.sort(key=lambda f: (not f.refined, -f.score))
         if query.refine:
-            for candidate in mine[:PER_PART]:
-                if not candidate.refined:
-                    search.refine_one(candidate)
+            search.refine_all([c for c in mine[:PER_PART] if not c.refined])
             mine = search.finish(sorted(mine, key=lambda f: -f.score))
         return max(mine, key=lambda f: f.score)
 

@@ -11,6 +11,7 @@ voxel of any other, so that a camera's resolution costs little.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -59,7 +60,12 @@ class Frame:
 
     def pixel_angle(self) -> float:
         """The angle between neighbouring pixels' rays (radians) of the full-resolution grid,
-        from its own horizontal neighbours; for a cloud without a grid, from its spacing."""
+        from its own horizontal neighbours; for a cloud without a grid, from its spacing.
+        Computed once a frame."""
+        return self._pixel_angle
+
+    @cached_property
+    def _pixel_angle(self) -> float:
         if self.shape is None or len(self) < 2:
             return spacing_angle(self.points, self.viewpoint)
         index, points = self.index, self.points
@@ -94,8 +100,15 @@ class Frame:
         return self.take(np.sort(first))
 
     def ranges(self) -> np.ndarray:
-        """(N,) each point's distance from the camera."""
-        return np.linalg.norm(self.points - self.viewpoint, axis=1)
+        """(N,) each point's distance from the camera (read-only: computed once a frame, for
+        the supports, the segments and the scene alike)."""
+        return self._ranges
+
+    @cached_property
+    def _ranges(self) -> np.ndarray:
+        ranges = np.linalg.norm(self.points - self.viewpoint, axis=1)
+        ranges.flags.writeable = False
+        return ranges
 
 
 def spacing_angle(points: np.ndarray, viewpoint: np.ndarray, sample: int = 512) -> float:

@@ -9,6 +9,7 @@ verified hypotheses are refined, and whether more parts are rescued when none fi
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -255,7 +256,7 @@ class Search:
     def refine_in_turn(
         self,
         planned: list[Fit],
-        stops,
+        stops: Callable[[Fit, float], bool],
         best: float = 0.0,
         iterations: int | None = None,
         along: list[Fit] | None = None,

@@ -64,7 +64,7 @@ class Occupancy:
     def near(self, points: np.ndarray) -> np.ndarray:
         """Whether an observed point lies within about a voxel of each of ``points`` (..., 3)."""
         cells = np.floor((points - self.low) / self.voxel).astype(np.intp)
-        np.clip(cells, 0, self.last, out=cells)
+        np.minimum(np.maximum(cells, 0, out=cells), self.last, out=cells)  # as np.clip, faster
         return np.take(self.grid, cells @ self.strides)
 
 
