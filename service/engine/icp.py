@@ -127,6 +127,22 @@ class Start:
     iterations: int = 20
     viewpoint: np.ndarray | None = None  # where the camera was (scene frame), if known
 
+    @classmethod
+    def at_tolerance(
+        cls,
+        surface: Surface,
+        rotation: np.ndarray,
+        translation: np.ndarray,
+        tolerance: float,
+        iterations: int,
+        viewpoint: np.ndarray | None,
+    ) -> Start:
+        """The chain's refinement of a pose, at a part's fit ``tolerance``: the sensor's noise
+        a quarter of it, pairs within five of it."""
+        return cls(
+            surface, rotation, translation, 0.25 * tolerance, 5 * tolerance, iterations, viewpoint
+        )
+
 
 def icp(
     scene: np.ndarray,

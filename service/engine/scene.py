@@ -29,7 +29,7 @@ from service.engine.answer import Alignment, Detection, SceneAnswer
 from service.engine.confidence import Calibration
 from service.engine.entry import Entry
 from service.engine.frame import Frame
-from service.engine.icp import icp
+from service.engine.icp import Start, icp_many
 from service.engine.look_alikes import doubt
 from service.engine.normalize import radius, subsample
 from service.engine.projection import DepthImage
@@ -412,16 +412,15 @@ class Scan:
         the camera was, and its canonical pose among those its symmetry makes equivalent; its
         alignment error measured on them."""
         sample = points[subsample(points, FINISH_POINTS, self.query.rng)]
-        rotation, translation, _ = icp(
-            sample,
+        start = Start.at_tolerance(
             entry.surface,
             answer.rotation,
             answer.translation,
-            noise=0.25 * tolerance,
-            gate=5 * tolerance,
-            iterations=FINISH_ITERATIONS,
-            viewpoint=self.frame.viewpoint,
+            tolerance,
+            FINISH_ITERATIONS,
+            self.frame.viewpoint,
         )
+        ((rotation, translation, _),) = icp_many(sample, [start])
         answer.rotation, answer.translation = entry.symmetry.canonical(rotation, translation)
         error = alignment_error(sample, entry.point_tree, answer.rotation, answer.translation)
         answer.alignment_error = error

@@ -392,16 +392,14 @@ class Search:
         starts = []
         for candidate in candidates:
             entry = self.entry(candidate.row)
-            tolerance = self.tolerance(entry)
             starts.append(
-                Start(
+                Start.at_tolerance(
                     entry.surface,
                     candidate.rotation,
                     candidate.translation,
-                    noise=0.25 * tolerance,
-                    gate=5 * tolerance,
-                    iterations=iterations,
-                    viewpoint=self.camera_of(entry, candidate),
+                    self.tolerance(entry),
+                    iterations,
+                    self.camera_of(entry, candidate),
                 )
             )
         refined = icp_many(self.refine_on if points is None else points, starts)

@@ -109,3 +109,41 @@ def test_the_mapped_pairs_follow_single_views_that_fit_well_enough(engine_with):
         assert max(f.score for f in fits if f.refined) < 0.99  # not excellent: a third pass
         sources[floor] = {f.source for f in fits if f.refined}
     assert "mapped" in sources[0.0] and "mapped" not in sources[0.99]
+
+
+@needs_model
+def test_poses_refined_together_end_their_turn_where_one_by_one_would(engine_with, references):
+    """``Search.refine_in_turn`` refines a pass's fits together, yet each refined one is posed
+    as refining it alone would, and the fits past where the turn stops are left as they were
+    (docs/decisions.md#refinements-together)."""
+    import copy
+
+    from service.engine.grid import grid
+    from service.engine.search import Search
+
+    engine = engine_with()
+    cloud, _ = posed(references[3], 2048, 5)
+    query = engine.query(None, None, True, None, None)
+    observed = engine.normalise(query, engine.set_aside(query, cloud)[0])
+    observed.mapped = engine.map(observed.points)
+    observed.grid = grid(observed.mapped)
+    ranking = engine.classify(query, observed)
+    search = Search(engine.settings, query, observed)
+    plan = engine._single_views(query, observed, ranking)
+    fits = search.verify(search.hypothesise(plan), plan)[:6]
+    alone = copy.deepcopy(fits)
+    for fit in alone:
+        search.refine_one(fit)
+    # a turn that stops once a refined fit reaches the third's refined score
+    floor = alone[2].score
+    expected = next(k for k in range(len(alone)) if max(f.score for f in alone[: k + 1]) >= floor)
+    together = copy.deepcopy(fits)
+    done = search.refine_in_turn(together, lambda _, best: best >= floor)
+    assert done == together[: expected + 1]
+    for mine, one in zip(done, alone, strict=False):
+        assert mine.refined
+        np.testing.assert_allclose(mine.rotation, one.rotation, atol=1e-9)
+        assert mine.score == pytest.approx(one.score, abs=1e-9)
+    for mine, before in zip(together[expected + 1 :], fits[expected + 1 :], strict=True):
+        assert not mine.refined
+        np.testing.assert_array_equal(mine.rotation, before.rotation)
