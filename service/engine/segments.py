@@ -78,7 +78,8 @@ def grid_links(
 def components(count: int, first: np.ndarray, second: np.ndarray) -> np.ndarray:
     """(count,) a component label per node of the graph of edges ``first``-``second``."""
     graph = coo_matrix((np.ones(len(first)), (first, second)), shape=(count, count))
-    _, labels = connected_components(graph.tocsr(), directed=False)
+    # weak components of the one-way edges: the same labels, without symmetrising the graph
+    _, labels = connected_components(graph.tocsr(), directed=True, connection="weak")
     return labels
 
 
