@@ -206,10 +206,10 @@ def icp_many(
     tolerance: float = 0.05,
 ) -> list[tuple[np.ndarray, np.ndarray, int]]:
     """Each start's pose refined on the same ``scene`` points (M, 3), or each on its own
-    (H, M, 3), all in one loop: each runs its
-    own iterations and stops by its own test, as ``icp`` alone would, and gets the same pose
-    to rounding; the arithmetic of an iteration is done for all at once, which on a few
-    hundred points costs little more than for one (docs/decisions.md#refinements-together).
+    (H, M, 3), all in one loop: each runs its own iterations and stops by its own test, as
+    ``icp`` alone would, and gets the same pose to rounding; the arithmetic of an iteration
+    is done for all at once, which on a few hundred points costs little more than for one
+    (docs/decisions.md#refinements-together).
     Each start's refined rotation, translation and the iterations it ran. One start is
     refined by ``icp``: its arrays of one pose cost less than the stacks' of one."""
     scene = np.asarray(scene, np.float64)
@@ -240,41 +240,42 @@ def icp_many(
     precise = np.zeros(len(starts), bool)
     iteration = 0
     while len(ids):
-        iteration += 1
-        model = np.matmul(scene - translation[:, None], rotation)
-        paired, normals = _pairs(starts, ids, model, precise, rotation, translation)
-        offset = model - paired
-        near = np.einsum("hij,hij->hi", offset, offset) < gate[:, None]
-        counts = near.sum(axis=1)
-        # too few pairs: it stops where it is, as does one whose iterations ran out
-        stop = counts < 6
-        if not stop.all():
-            # the running starts with pairs enough (a view of all while none has stopped)
-            live = slice(None) if not stop.any() else ~stop
-            offset, normals, model, near = offset[live], normals[live], model[live], near[live]
-            residual = np.einsum("hij,hij->hi", offset, normals)
-            spread = np.maximum(1.4826 * _medians(np.abs(residual), near), noise[live])
-            u = residual / (TUKEY * spread[:, None])
-            kept = np.abs(u) < 1
-            weight = np.where(kept if near.all() else kept & near, (1 - u**2) ** 2, 0.0)
-            jacobian = _jacobian(model, normals)  # (H, M, 6)
-            weighted = (jacobian * weight[..., None]).transpose(0, 2, 1)
-            system = weighted @ jacobian
-            trace = np.trace(system, axis1=1, axis2=2)
-            system[:, DIAGONAL, DIAGONAL] += (DAMPING * trace + 1e-12)[:, None]
-            step = -np.linalg.solve(system, weighted @ residual[..., None])[..., 0]
-            # model points m -> C m + d
-            correction = _rodrigues(step[:, :3])
-            turned_to = rotation[live] @ correction.transpose(0, 2, 1)
-            rotation[live] = turned_to
-            translation[live] -= (turned_to @ step[:, 3:, None])[..., 0]
-            turned = np.sqrt(np.einsum("hi,hi->h", step[:, :3], step[:, :3]))
-            moved = np.sqrt(np.einsum("hi,hi->h", step[:, 3:], step[:, 3:]))
-            close = (turned < CLOSE_RAD) & (moved < CLOSE * noise[live])
-            settled = close & precise[live] & (turned < tolerance_rad)
-            stop[live] = settled & (moved < tolerance * noise[live])
-            precise[live] |= close
-        stop |= budget == iteration
+        stop = budget <= iteration  # its iterations ran out (none given: where it started)
+        if not stop.any():
+            iteration += 1
+            model = np.matmul(scene - translation[:, None], rotation)
+            paired, normals = _pairs(starts, ids, model, precise, rotation, translation)
+            offset = model - paired
+            near = np.einsum("hij,hij->hi", offset, offset) < gate[:, None]
+            counts = near.sum(axis=1)
+            # too few pairs: it stops where it is
+            stop = counts < 6
+            if not stop.all():
+                # the running starts with pairs enough (a view of all while none has stopped)
+                live = slice(None) if not stop.any() else ~stop
+                offset, normals, model, near = offset[live], normals[live], model[live], near[live]
+                residual = np.einsum("hij,hij->hi", offset, normals)
+                spread = np.maximum(1.4826 * _medians(np.abs(residual), near), noise[live])
+                u = residual / (TUKEY * spread[:, None])
+                kept = np.abs(u) < 1
+                weight = np.where(kept if near.all() else kept & near, (1 - u**2) ** 2, 0.0)
+                jacobian = _jacobian(model, normals)  # (H, M, 6)
+                weighted = (jacobian * weight[..., None]).transpose(0, 2, 1)
+                system = weighted @ jacobian
+                trace = np.trace(system, axis1=1, axis2=2)
+                system[:, DIAGONAL, DIAGONAL] += (DAMPING * trace + 1e-12)[:, None]
+                step = -np.linalg.solve(system, weighted @ residual[..., None])[..., 0]
+                # model points m -> C m + d
+                correction = _rodrigues(step[:, :3])
+                turned_to = rotation[live] @ correction.transpose(0, 2, 1)
+                rotation[live] = turned_to
+                translation[live] -= (turned_to @ step[:, 3:, None])[..., 0]
+                turned = np.sqrt(np.einsum("hi,hi->h", step[:, :3], step[:, :3]))
+                moved = np.sqrt(np.einsum("hi,hi->h", step[:, 3:], step[:, 3:]))
+                close = (turned < CLOSE_RAD) & (moved < CLOSE * noise[live])
+                settled = close & precise[live] & (turned < tolerance_rad)
+                stop[live] = settled & (moved < tolerance * noise[live])
+                precise[live] |= close
         if stop.any():
             for h in np.flatnonzero(stop):
                 out[ids[h]] = (rotation[h], translation[h], iteration)

@@ -3,6 +3,8 @@ the distance field, normals, point-to-plane refinement, views, verification and 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import trimesh
@@ -181,6 +183,7 @@ def test_poses_refined_together_are_those_refined_one_by_one(bracket):
         starts.append(
             Start(surface, turn @ rotation, shift, 1e-3 * scale, 0.3 * scale, 6 + 4 * k, camera)
         )
+    starts.append(replace(starts[0], iterations=0))  # none: where it started, as icp gives it
     together = icp_many(scene, starts)
     for start, (r, t, done) in zip(starts, together, strict=True):
         alone = icp(
@@ -198,6 +201,8 @@ def test_poses_refined_together_are_those_refined_one_by_one(bracket):
         np.testing.assert_allclose(t, alone[1], atol=1e-9)
     assert together[5][2] == 1  # the one too far stopped where it was
     np.testing.assert_array_equal(together[5][1], starts[5].translation)
+    assert together[6][2] == 0
+    np.testing.assert_array_equal(together[6][0], starts[0].rotation)
     for start, (r, _, _) in zip(starts[:5], together, strict=False):  # the others did refine
         assert angle_deg(r, rotation) < 0.5 * angle_deg(start.rotation, rotation)
     assert icp_many(scene, []) == []
