@@ -105,7 +105,10 @@ def screened(
     ``angles`` times about the line of sight, scored on a few points at a coarse tolerance:
     the best few of each seed, best first."""
     scale = entry.reference.scale
-    occupancy = Occupancy.around(points, TEMPLATE_TOLERANCE * scale, spacing)
+    # the depth image's word where there is one; else whether an observed point is near
+    occupancy = (
+        Occupancy.around(points, TEMPLATE_TOLERANCE * scale, spacing) if camera is None else None
+    )
     views = entry.views
     chosen = np.arange(0, len(views.radii), every)
     model_bases = views.bases[chosen]  # rows u v d: each view's camera
