@@ -208,6 +208,28 @@ def test_poses_refined_together_are_those_refined_one_by_one(bracket):
     assert icp_many(scene, []) == []
 
 
+def test_poses_refined_together_each_on_its_own_points(bracket):
+    """``icp_many`` given a scene a start (H, M, 3), as a frame's placed views are refined:
+    each start is refined on its own points, as ``icp`` on those points alone."""
+    rotation = Rotation.random(random_state=6).as_matrix()
+    rng = np.random.default_rng(7)
+    scale = radius(bracket.points)
+    scenes, starts = [], []
+    for k in range(3):
+        translation = np.array([0.1 * k, 0.0, 0.5])
+        sample = sample_surface_faces(l_bracket(), 300, 20 + k)[0]
+        scenes.append(sample @ rotation.T + translation)
+        turn = Rotation.from_rotvec(rng.normal(size=3) * 0.1).as_matrix()
+        starts.append(Start(bracket, turn @ rotation, translation, 1e-3 * scale, 0.3 * scale, 15))
+    together = icp_many(np.stack(scenes), starts)
+    for scene, start, (r, t, done) in zip(scenes, starts, together, strict=True):
+        alone = icp(scene, bracket, start.rotation, start.translation, start.noise, start.gate, 15)
+        assert done == alone[2]
+        np.testing.assert_allclose(r, alone[0], atol=1e-9)
+        np.testing.assert_allclose(t, alone[1], atol=1e-9)
+        assert angle_deg(r, rotation) < 0.5 * angle_deg(start.rotation, rotation)
+
+
 def test_a_camera_for_each_row_of_points_is_each_rows_own(bracket):
     """``Surface.nearest`` told (S, 3) cameras for (S, M, 3) points pairs each row as one
     camera for that row alone would."""
