@@ -9,6 +9,7 @@ verified hypotheses are refined, and whether more parts are rescued when none fi
 from __future__ import annotations
 
 import dataclasses
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -183,14 +184,11 @@ class Search:
         firsts = [f for f in fits if f.row == plan.first][:FIRST_REFINED]
         sure = firsts if all(f.row != plan.first for f in planned) else []
         refined = self.refine_budget(planned, sure)
-        per_row: dict[int, int] = {}
-        for candidate in refined:
-            per_row[candidate.row] = per_row.get(candidate.row, 0) + 1
+        per_row = Counter(candidate.row for candidate in refined)
         if firsts and plan.first not in per_row:  # planned, but the turn did not reach it
-            for mine in firsts:
-                per_row[plan.first] = per_row.get(plan.first, 0) + 1
-                self.refine_one(mine)
-                refined.append(mine)
+            self.refine_all(firsts)
+            per_row[plan.first] += len(firsts)
+            refined += firsts
         if plan.rescue and self.settings.rescued_parts:
             self.rescue(fits, per_row, refined)
 
@@ -224,7 +222,7 @@ class Search:
             turn += self.refine_in_turn(planned[head:], stops, best)
         return turn + sure
 
-    def rescue(self, fits: list[Fit], per_row: dict[int, int], refined: list[Fit]) -> None:
+    def rescue(self, fits: list[Fit], per_row: Counter[int], refined: list[Fit]) -> None:
         """Where no refined fit fits well (``RESCUE_BELOW``), the best ``RESCUE_EACH``
         hypotheses of each next part (up to ``settings.rescued_parts`` parts) refined on half
         the ICP budget, until one does; the best of them then on the rest, if it beats every

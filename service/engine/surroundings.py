@@ -242,9 +242,10 @@ def set_aside_bin(
         found = plane_candidate(sample[rest], step, rng, BIN_PLANE_SHARE * len(sample) / len(rest))
         if found is None:
             return None
-        floor, thickness = fitted(sample[rest[found[1]]], found[0], PLANE_SPACINGS * step)
+        on_floor = sample[rest[found[1]]]
+        floor, thickness = fitted(on_floor, found[0], PLANE_SPACINGS * step)
         floor = floor * np.sign(viewpoint @ floor[:3] - floor[3])  # the camera looks into it
-        reading = _in_bin(points, sample, step, floor, thickness, sample[rest[found[1]]], rng)
+        reading = _in_bin(points, sample, step, floor, thickness, on_floor, rng)
         if reading is not None:
             return reading
         left[rest[found[1]]] = False
