@@ -38,11 +38,13 @@ from service.engine.segments import adjacent
 from service.engine.supports import Noise, Support
 from service.engine.templates import likeliest, place_views
 from service.engine.tuning import (
+    CHAIN_AGREES,
     CLAIM_TOLERANCE,
     DUPLICATE_GAP,
     FINISH_ITERATIONS,
     FINISH_POINTS,
     FRAGMENT,
+    INSTANCE_FLOOR,
     JOIN_PIXELS,
     JOIN_SCALES,
     MATCH_POINTS,
@@ -200,6 +202,19 @@ def evidence(
     }
 
 
+def chain_confidence(said: dict[str, float]) -> float:
+    """The chain's own confidence for an instance's points, from its ``evidence``."""
+    return float(1 / (1 + np.exp(-said["chain"])))
+
+
+def may_match(said: dict[str, float], confidence: float, threshold: float) -> bool:
+    """Whether an instance with this ``evidence`` may be a "match" at ``confidence``: above
+    the threshold, and not refused by the chain alone (``CHAIN_AGREES``): the frame's
+    calibration weighs the margin to the other parts, which a small gallery inflates
+    (docs/decisions.md#detect)."""
+    return confidence >= threshold and chain_confidence(said) >= CHAIN_AGREES
+
+
 @dataclass
 class Scan:
     """One ``Engine.detect``: the frame's points left once its supports are set aside, what
@@ -287,6 +302,8 @@ class Scan:
         sigma = self.noise.at(points, self.frame.viewpoint)
         answer = self.answer_for(points, sigma)
         found = self.claim(region, answer, sigma)
+        if found is None and len(points) > SEGMENT_POINTS:  # one sample may mislead the chain
+            found = self.claim(region, self.ask(self.another_sample(points), sigma), sigma)
         if found is not None:
             return found
         if not self.may_hold_several(points, answer):
@@ -326,9 +343,19 @@ class Scan:
     def answer_for(self, points: np.ndarray, sigma: float) -> Alignment:
         """The chain's answer for a segment's points (``SEGMENT_POINTS`` of them at most),
         nothing set aside."""
+        return self.ask(points[subsample(points, SEGMENT_POINTS, self.query.rng)], sigma)
+
+    @staticmethod
+    def another_sample(points: np.ndarray) -> np.ndarray:
+        """``SEGMENT_POINTS`` of ``points`` drawn apart from the search's own draws (which
+        stay as they were), the same for the same points."""
+        return points[subsample(points, SEGMENT_POINTS, np.random.default_rng(len(points)))]
+
+    def ask(self, points: np.ndarray, sigma: float = 0.0) -> Alignment:
+        """The chain's answer for ``points``, nothing set aside."""
         labels = self.query.snapshot.classifier.labels
         return self.align(
-            points[subsample(points, SEGMENT_POINTS, self.query.rng)],
+            points,
             [labels[row] for row in self.query.allowed],
             viewpoint=self.frame.viewpoint,
             min_confidence=self.min_confidence,
@@ -372,7 +399,9 @@ class Scan:
         sensor's noise (``Query.tolerance``)."""
         return max(self.tolerance * entry.reference.scale, NOISE_TOLERANCES * sigma)
 
-    def claim(self, region: np.ndarray, answer: Alignment, sigma: float) -> Instance | None:
+    def claim(
+        self, region: np.ndarray, answer: Alignment, sigma: float, again: bool = True
+    ) -> Instance | None:
         """``answer`` as an instance claiming the free points near its surface, judged; None
         if it is no registered part, explains fewer than ``MIN_EXPLAINED`` of ``region``, or
         is less confident than the floor."""
@@ -403,9 +432,22 @@ class Scan:
             answer, entry, inside, len(region), self.frame.viewpoint, self.camera, tolerance
         )
         self.judge(instance)
+        doubted = instance.answer.verdict != "match"
+        if again and doubted and instance.answer.confidence >= INSTANCE_FLOOR:
+            instance = self.asked_again(region, instance, sigma)
         if (instance.answer.confidence or 0.0) < self.floor:
             return None
         return instance
+
+    def asked_again(self, region: np.ndarray, instance: Instance, sigma: float) -> Instance:
+        """A posed instance the frame does not confirm, with the chain asked once more about
+        just the points it claims: a segment's sample may have posed it poorly, or its
+        neighbours' points misled the search (docs/decisions.md#detect). The more confident
+        of the two; the search's own draws are left as they were."""
+        points = self.frame.points[instance.claimed]
+        second = self.claim(region, self.ask(self.another_sample(points), sigma), sigma, False)
+        better = second is not None and second.answer.confidence > instance.answer.confidence
+        return second if better else instance
 
     def finish(self, answer: Alignment, entry: Entry, points: np.ndarray, tolerance: float):
         """``answer``'s pose refined by ICP on (a sample of) the points it claims, told where
@@ -438,7 +480,7 @@ class Scan:
         answer.confidence = calibration.confidence(said)
         threshold = next(t for t in (self.min_confidence, calibration.accept) if t is not None)
         few = len(instance.claimed) < MATCH_POINTS  # docs/decisions.md#detect
-        if answer.confidence >= threshold and not few:
+        if may_match(said, answer.confidence, threshold) and not few:
             answer.verdict, answer.reasons = "match", []
             doubt(answer, share=False)  # the chain's confidence, shared among them, is a feature
             return
@@ -453,6 +495,11 @@ class Scan:
                 f"only {len(instance.claimed)} of the frame's points (thinned) are explained by "
                 f"{answer.label}, fewer than the {MATCH_POINTS} a match needs: too few to tell "
                 "it from parts that look alike; image it closer, or with less hidden"
+            )
+        if (chain := chain_confidence(said)) < CHAIN_AGREES:
+            reasons.append(
+                f"the one-part search alone is {chain:.2f} confident of {answer.label} here, "
+                f"under the {CHAIN_AGREES:.2f} a match needs whatever the frame says"
             )
         if said["through"] > THROUGH_DOUBT:
             reasons.append(

@@ -113,6 +113,7 @@ LINK_NOISE = 0.004  # ... plus this share of their range
 MIN_SEGMENT = 60  # a segment (or what is left of it) of fewer points is not searched
 MIN_EXPLAINED = 40  # an instance explains at least this many of its segment's points
 MATCH_POINTS = 150  # ... and a "match" this many (fewer were right 8 times in 244)
+CHAIN_AGREES = 0.5  # ... and the chain's own confidence for its points at least this
 MAX_TRIES = 4  # instances looked for in one segment, at most
 CLAIM_TOLERANCE = 1.5  # an instance claims the points within this many tolerances of it
 KEEP_SHARE = 0.5  # an instance left with less of its claim after the global check goes

@@ -15,6 +15,7 @@ from service.engine.engine import Engine
 from service.engine.mapping import Mapper
 from service.engine.sampling import sample_surface_faces
 from service.engine.scene import Instance, settle_claims
+from service.engine.tuning import SEGMENT_POINTS
 from service.settings import Settings
 from tests.frames import frame_of, resting, shoot, spin, table
 
@@ -133,3 +134,72 @@ def test_a_frame_told_its_candidates_is_judged_by_the_told_calibration(engine, t
     assert told[0].answer.verdict == "no_match"  # judged by the told calibration
     everyone = calibrated.detect(frame, candidates=["box", "rod"]).detections
     assert [d.answer.verdict for d in everyone] == ["match"]  # naming them all is not told
+
+
+def test_a_match_needs_the_one_part_search_not_to_refuse_it(engine):
+    # a frame calibration that trusts every instance: an unregistered cylinder, posed as the
+    # only registered part (a box), is still refused, because the chain alone doubts it
+    trusting = replace(Calibration.load(SETTINGS.detect_confidence_path), bias=50.0)
+    calibrated = Engine(engine.mapper, SETTINGS.engine, engine.calibration, trusting)
+    calibrated.load([engine.entry("box").reference])
+    can = trimesh.creation.cylinder(radius=0.035, height=0.07)
+    frame = frame_of(shoot([(can, *resting(can, spin(10), 0.0, 0.0))], table()))
+    found = [d.answer for d in calibrated.detect(frame, floor=0.0).detections]
+    assert found and {a.label for a in found} == {"box"}
+    for doubted in found:
+        assert doubted.confidence > 0.99  # the frame's calibration alone would accept it
+        assert doubted.verdict == "uncertain"
+        assert any("one-part search alone" in reason for reason in doubted.reasons)
+    box = trimesh.creation.box((0.08, 0.06, 0.04))
+    frame = frame_of(shoot([(box, *resting(box, spin(25), 0.0, 0.0))], table()))
+    assert [d.answer.verdict for d in calibrated.detect(frame).detections] == ["match"]
+
+
+def counting(engine: Engine) -> list[np.ndarray]:
+    """The clouds ``engine.align`` is asked about from now on (the real one answers)."""
+    calls: list[np.ndarray] = []
+    align = engine.align
+
+    def counted(points, *args, **kwargs):
+        calls.append(np.array(points))
+        return align(points, *args, **kwargs)
+
+    engine.align = counted
+    return calls
+
+
+def test_an_instance_the_frame_doubts_is_asked_about_once_more(engine, one_box):
+    # a frame calibration that doubts every instance (uncertain, above the floor): the chain
+    # is asked again about the points each claims; a match is asked once
+    _, shot = one_box
+    shipped = Calibration.load(SETTINGS.detect_confidence_path)
+    for accept, asked in ((0.999, 2), (0.01, 1)):
+        judged = replace(shipped, bias=0.0, weights=0 * shipped.weights, accept=accept)
+        calibrated = Engine(engine.mapper, SETTINGS.engine, engine.calibration, judged)
+        calibrated.load([engine.entry("box").reference])
+        calls = counting(calibrated)
+        found = calibrated.detect(frame_of(shot)).detections
+        assert [d.answer.label for d in found] == ["box"]
+        assert found[0].answer.confidence == pytest.approx(0.5)
+        assert len(calls) == asked, calls
+
+
+def test_a_segment_nothing_was_found_in_is_asked_about_from_another_sample(engine):
+    # a frame calibration that finds every instance below the floor: the chain, asked about
+    # a sample of the box's segment (close up, and thinned for a far smaller part: more
+    # points than a sample), finds nothing it lists, and is asked once more about another
+    # sample of the same points
+    doubting = replace(Calibration.load(SETTINGS.detect_confidence_path), bias=-50.0)
+    calibrated = Engine(engine.mapper, SETTINGS.engine, engine.calibration, doubting)
+    cube = trimesh.creation.box((0.02, 0.02, 0.02))
+    points, faces = sample_surface_faces(cube, 2048, 0)
+    small = engine.make_reference("cube", points, mesh=cube, face_index=faces)
+    calibrated.load([engine.entry("box").reference, small])
+    mesh = trimesh.creation.box((0.08, 0.06, 0.04))
+    shot = shoot([(mesh, *resting(mesh, spin(25), 0.0, 0.0))], table(), distance=0.4)
+    calls = counting(calibrated)
+    assert calibrated.detect(frame_of(shot)).detections == []
+    first, second = calls[:2]
+    assert len(first) == len(second) == SEGMENT_POINTS
+    together = np.unique(np.concatenate([first, second]), axis=0)
+    assert SEGMENT_POINTS < len(together) < 2 * SEGMENT_POINTS  # one segment, two samples
