@@ -31,6 +31,7 @@ from service.engine.tuning import (
     MAX_SUPPORTS,
     PART_EXTENTS,
     PLANE_ITERATIONS,
+    RAISED_SHARE,
     SENSOR_NOISE,
     SLAB_SHARE,
     SUPPORT_CELLS,
@@ -111,6 +112,9 @@ def set_aside_supports(
         across = reach(on_plane, plane)
         level = any(is_level(on_plane, plane, below, across) for below in supports)
         wide = level or across >= largest  # a bin's floor: level with the table, just above it
+        # a table over the floor, where the floor was found first (docs/decisions.md#detect)
+        raised = bool(supports) and is_raised(on_plane, plane, supports[0], across)
+        raised = raised and len(on) >= RAISED_SHARE * supports[0].points
         # no part's face reaches this far: the table under a bin, whatever lies behind its
         # cells (a later plane may be parts' faces side by side: it must carry, or be a wall)
         vast = not supports and across >= SUPPORT_REACH * largest
@@ -120,7 +124,7 @@ def set_aside_supports(
         # the first may carry nothing (an empty table); a later one is a wall, or carries
         # something and reaches farther than a part's face could
         least_over = CARRIED_POINTS if supports else 0
-        may_carry = not supports or wide
+        may_carry = not supports or wide or raised
         carrying = may_carry and carries(on_plane, frame.points[off], plane, cell, least_over)
         if may_carry and not carrying and frame.shape is not None:
             # the background seen past a table's edge lies behind it too, but apart from it
@@ -221,6 +225,15 @@ def is_level(on_plane: np.ndarray, plane: np.ndarray, floor: Support, across: fl
     level = abs(float(plane[:3] @ floor.plane[:3])) > np.cos(np.radians(WALL_DEG))
     height = float(np.median(on_plane @ floor.plane[:3] - floor.plane[3]))
     return level and 0 < height < SLAB_SHARE * across
+
+
+def is_raised(on_plane: np.ndarray, plane: np.ndarray, floor: Support, across: float) -> bool:
+    """Whether a plane lies level with the first support (within ``WALL_DEG``) and above it by
+    more than a bin's floor would (``is_level``): a table over the floor the camera saw more
+    of. It must still carry what lies over it, and be one patch, to be a support."""
+    level = abs(float(plane[:3] @ floor.plane[:3])) > np.cos(np.radians(WALL_DEG))
+    height = float(np.median(on_plane @ floor.plane[:3] - floor.plane[3]))
+    return level and height >= SLAB_SHARE * across
 
 
 def is_wall(

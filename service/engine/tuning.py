@@ -97,6 +97,7 @@ CARRIED_POINTS = 50  # ... carrying more points than this, unless it is a wall
 BEHIND_SHARE = 0.2  # ... and has less than this share of what lies over it behind it
 SLAB_SHARE = 0.1  # a support's slab (a table's edge, a bin's floor) is this thin for its reach
 SUPPORT_REACH = 1.5  # ... or reaches this many times the largest part's scale (no face does)
+RAISED_SHARE = 0.2  # a plane over the first, parallel, this share of its points: a table
 PART_EXTENTS = 2.0  # the parts on a support are at most this many times what is left's extent
 WALL_REACH = 1.2  # ... or is a wall reaching this many times the largest part's scale ...
 SUPPORT_CONNECTED = 0.8  # ... a later one with this share of its cells in one patch

@@ -112,3 +112,20 @@ def test_a_parts_top_face_level_with_the_table_is_not_a_bins_floor(parts):
     frame, keep, supports = supports_of(shot, np.append(SCALES, radius))
     top = np.isin(frame.index, np.flatnonzero(shot.shows.ravel() == 0))
     assert keep[top].mean() > 0.9, "the tall box's top was set aside as a support"
+
+
+def test_a_table_over_a_floor_seen_more_than_it_is_set_aside(parts):
+    # from 2 m the room's floor is the largest plane, found first; the table over it holds a
+    # third as many points and reaches less far than the gallery's largest part (1 m), so it
+    # is no support by its reach: lying parallel over the floor, carrying, it is one
+    placed = [(parts, *resting(parts, spin(20), 0.05, 0.0))]
+    top = box((1.4, 1.0, 0.03), (0.0, 0.0, -0.015))
+    shot = shoot(placed, [top, FLOOR], elevation_deg=45.0, distance=2.0)
+    frame, keep, supports = supports_of(shot, np.array([0.04, 0.06, 1.0]))
+    part = np.isin(frame.index, np.flatnonzero(shot.shows.ravel() == 0))
+    assert len(supports) >= 2
+    floor, table = supports[:2]
+    assert floor.plane[3] < table.plane[3]  # the floor, farther from the camera, came first
+    assert floor.points > 2 * table.points
+    assert keep[~part].mean() < 0.05, "the table was kept as a part's face"
+    assert keep[part].mean() > 0.85
