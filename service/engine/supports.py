@@ -218,21 +218,26 @@ def detached_behind(
     return behind[off] & (~joined[labels[off]] | edge)
 
 
-def is_level(on_plane: np.ndarray, plane: np.ndarray, floor: Support, across: float) -> bool:
-    """Whether a plane lies level with a support found before it (within ``WALL_DEG``), above it
-    by less than ``SLAB_SHARE`` of its reach (``across``): a bin's floor on a table, not the
-    face of a part (which would be a thin plate)."""
+def level_and_height(on_plane: np.ndarray, plane: np.ndarray, floor: Support) -> tuple[bool, float]:
+    """Whether a plane lies level with a support found before it (within ``WALL_DEG``), and
+    how high above it its points lie (median)."""
     level = abs(float(plane[:3] @ floor.plane[:3])) > np.cos(np.radians(WALL_DEG))
-    height = float(np.median(on_plane @ floor.plane[:3] - floor.plane[3]))
+    return level, float(np.median(on_plane @ floor.plane[:3] - floor.plane[3]))
+
+
+def is_level(on_plane: np.ndarray, plane: np.ndarray, floor: Support, across: float) -> bool:
+    """Whether a plane lies level with a support found before it, above it by less than
+    ``SLAB_SHARE`` of its reach (``across``): a bin's floor on a table, not the face of a part
+    (which would be a thin plate)."""
+    level, height = level_and_height(on_plane, plane, floor)
     return level and 0 < height < SLAB_SHARE * across
 
 
 def is_raised(on_plane: np.ndarray, plane: np.ndarray, floor: Support, across: float) -> bool:
-    """Whether a plane lies level with the first support (within ``WALL_DEG``) and above it by
-    more than a bin's floor would (``is_level``): a table over the floor the camera saw more
-    of. It must still carry what lies over it, and be one patch, to be a support."""
-    level = abs(float(plane[:3] @ floor.plane[:3])) > np.cos(np.radians(WALL_DEG))
-    height = float(np.median(on_plane @ floor.plane[:3] - floor.plane[3]))
+    """Whether a plane lies level with the first support and above it by more than a bin's
+    floor would (``is_level``): a table over the floor the camera saw more of. It must still
+    carry what lies over it, and be one patch, to be a support."""
+    level, height = level_and_height(on_plane, plane, floor)
     return level and height >= SLAB_SHARE * across
 
 
