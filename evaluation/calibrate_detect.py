@@ -9,9 +9,9 @@ A part seen in a whole frame is often half hidden by others, and far smaller in 
 view than the single views ``evaluation.calibrate`` fits the chain's confidence on: the chain
 then doubts instances that the frame shows clearly (their missing surface is hidden by a part
 in front of it, not absent). The detection's confidence is a logistic regression over what
-the frame says of an instance (``scene.evidence``, ``FITTED`` of it: the chain's confidence, the
-share of what the camera should see that its depth shows, the share it saw through, the share of
-its segment it explains, its points).
+the frame says of an instance (``scene.evidence``: the chain's confidence, fit, coverage, the
+margin, the share of what the camera should see that its depth shows, the share it saw through,
+the share of its segment it explains, its points).
 
 Frames (``evaluation.frames``: scene, bin and foreign families) are drawn with one seed for
 fitting, their registered parts from the manifest's seen objects, and with another for checking,
@@ -37,7 +37,7 @@ from evaluation import frames as whole
 from evaluation.calibrate import PRECISION, fit_calibration, judge
 from evaluation.metrics import add_s, diameter
 from service.api.clouds import organized
-from service.engine.confidence import Calibration
+from service.engine.confidence import SCENE_FEATURES, Calibration
 from service.engine.engine import Engine
 from service.engine.frame import Frame
 from service.engine.mapping import Mapper
@@ -49,10 +49,6 @@ from service.settings import MODELS_DIR, Settings
 FAMILIES = {"scene": 3, "bin": 1, "foreign": 1}  # frames of each, per --frames
 ADD_S_POINTS = 4096
 ACCEPT_FLOOR = 0.5  # an instance is accepted when more likely right than not, at least
-# what the frame adds to the chain's confidence, which already weighs the fit, coverage and
-# margin on the corpus's 135 parts: weighed again here they cost recall and precision on the
-# checked frames (docs/decisions.md#detect)
-FITTED = ("chain", "seen", "through", "explained", "points")
 
 
 def gallery_engine(parts: list[whole.FramePart]) -> Engine:
@@ -192,7 +188,7 @@ def main(argv: list[str] | None = None) -> dict:
     check_rows = collect(
         engine, counts, args.seed + 1, unseen, foreign, truth_points, "check frames", args.told
     )
-    calibration = fit_calibration(fit_rows, FITTED)
+    calibration = fit_calibration(fit_rows, SCENE_FEATURES)
     accept = acceptance(calibration, fit_rows)
     about = {
         "fitted": datetime.now(UTC).isoformat(timespec="seconds"),
