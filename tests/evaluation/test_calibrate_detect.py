@@ -1,0 +1,47 @@
+"""The detection calibration's threshold (``evaluation.calibrate_detect``): chosen on what the
+service would accept, not on the confidence alone."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from evaluation.calibrate_detect import acceptance, served, served_figures
+from service.engine.confidence import SCENE_FEATURES as FEATURES
+from service.engine.confidence import Calibration
+
+
+def by_chain() -> Calibration:
+    """A calibration whose confidence is the chain's own (its logit, weight 1)."""
+    weights = np.array([1.0 if name == "chain" else 0.0 for name in FEATURES])
+    ones = np.ones(len(FEATURES))
+    return Calibration(FEATURES, weights, 0.0, 0 * ones, ones, {})
+
+
+def row(chain: float, points: int, right: bool, family: str = "scene") -> dict:
+    logit = float(np.log(chain / (1 - chain)))
+    return {"chain": logit, "fit": 1.0, "coverage": 1.0, "margin": 0.5, "seen": 1.0,
+            "through": 0.0, "explained": 1.0, "points": float(np.log10(points)),
+            "right": right, "family": family}  # fmt: skip
+
+
+def test_what_is_served_needs_the_points_and_the_chains_word():
+    calibration = by_chain()
+    rows = [row(0.9, 1000, True), row(0.9, 100, True), row(0.4, 1000, False)]
+    assert served(calibration, rows, 0.5).tolist() == [True, False, False]
+    # a confidence above the threshold is not enough where the chain itself refuses
+    trusting = Calibration(
+        FEATURES, np.zeros(len(FEATURES)), 50.0, np.zeros(len(FEATURES)), np.ones(len(FEATURES)), {}
+    )
+    assert served(trusting, rows, 0.5).tolist() == [True, False, False]
+
+
+def test_the_threshold_is_the_lowest_where_what_is_served_is_right():
+    calibration = by_chain()
+    # a wrong instance the chain is 0.745 sure of, one on too few points at 0.95 (never served)
+    rows = [row(c, 1000, True) for c in (0.8, 0.9, 0.95)] + [
+        row(0.745, 1000, False),
+        row(0.95, 100, False),
+    ]
+    assert acceptance(calibration, rows) == 0.75
+    figures = served_figures(calibration, rows, 0.75)
+    assert figures == {"scene": {"right": 3, "right_accepted": 1.0, "wrong_accepted": 0}}
