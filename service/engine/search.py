@@ -249,7 +249,7 @@ class Search:
         )
         winner = max(tried, key=lambda f: f.score, default=None)
         if winner is not None and winner.score > max((f.score for f in refined), default=0.0):
-            self.refine_one(winner)
+            self.refine_all([winner])
 
     def refine_in_turn(
         self,
@@ -341,10 +341,6 @@ class Search:
             )
             for h in range(len(made))
         ]
-
-    def refine_one(self, candidate: Fit, iterations: int | None = None) -> None:
-        """Point-to-plane ICP from the fit's pose, then verified again on more points."""
-        self.refine_all([candidate], iterations)
 
     def refine_all(self, candidates: list[Fit], iterations: int | None = None) -> None:
         """Each fit's pose refined by point-to-plane ICP (``iterations``: the setting's unless

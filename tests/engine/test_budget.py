@@ -133,7 +133,7 @@ def test_poses_refined_together_end_their_turn_where_one_by_one_would(engine_wit
     fits = search.verify(search.hypothesise(plan), plan)[:6]
     alone = copy.deepcopy(fits)
     for fit in alone:
-        search.refine_one(fit)
+        search.refine_all([fit])  # one by one
     # a turn that stops once a refined fit reaches the third's refined score
     floor = alone[2].score
     expected = next(k for k in range(len(alone)) if max(f.score for f in alone[: k + 1]) >= floor)
