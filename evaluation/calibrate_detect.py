@@ -11,7 +11,8 @@ then doubts instances that the frame shows clearly (their missing surface is hid
 in front of it, not absent). The detection's confidence is a logistic regression over what
 the frame says of an instance (``scene.evidence``: the chain's confidence, fit, coverage, the
 margin, the share of what the camera should see that its depth shows, the share it saw through,
-the share of its segment it explains, its points).
+the share of its segment it explains, its points). A second one is fitted on the instances
+that may be a match at all (``fit_scene``): it decides their confidence, and so the verdict.
 
 Frames (``evaluation.frames``: scene, bin and foreign families) are drawn with one seed for
 fitting, their registered parts from the manifest's seen objects, and with another for checking,
@@ -37,7 +38,7 @@ from evaluation import frames as whole
 from evaluation.calibrate import PRECISION, fit_calibration, judge
 from evaluation.metrics import add_s, diameter
 from service.api.clouds import organized
-from service.engine.confidence import SCENE_FEATURES, Calibration
+from service.engine.confidence import ELIGIBLE_FEATURES, SCENE_FEATURES, Calibration
 from service.engine.engine import Engine
 from service.engine.frame import Frame
 from service.engine.mapping import Mapper
@@ -49,6 +50,7 @@ from service.settings import MODELS_DIR, Settings
 FAMILIES = {"scene": 3, "bin": 1, "foreign": 1}  # frames of each, per --frames
 ADD_S_POINTS = 4096
 ACCEPT_FLOOR = 0.5  # an instance is accepted when more likely right than not, at least
+ELIGIBLE_EACH = 10  # the instances that may be a match get their own fit with this many of each
 
 
 def gallery_engine(parts: list[whole.FramePart]) -> Engine:
@@ -120,6 +122,31 @@ def collect(
     return rows
 
 
+def eligible_at() -> dict[str, float]:
+    """The least evidence of an instance that may be a match (``Scan.judge``): the chain's own
+    confidence ``CHAIN_AGREES`` (its logit) and ``MATCH_POINTS`` points (log10)."""
+    return {
+        "chain": float(np.log(CHAIN_AGREES / (1 - CHAIN_AGREES))),
+        "points": float(np.log10(MATCH_POINTS)),
+    }
+
+
+def fit_scene(rows: list[dict]) -> Calibration:
+    """The detection's calibration: a logistic regression on every instance, and one on those
+    that may be a match alone, which judges them. Most instances are plainly wrong (the
+    chain refuses them, or they explain a few points): fitted on them all, the weights are set
+    where nothing is decided, and the threshold by the few wrong ones that look right
+    (docs/decisions.md#detect)."""
+    calibration = fit_calibration(rows, SCENE_FEATURES)
+    floors = eligible_at()
+    mine = [row for row in rows if all(row[k] >= least for k, least in floors.items())]
+    right = sum(row["right"] for row in mine)
+    if min(right, len(mine) - right) < ELIGIBLE_EACH:  # too few to fit apart
+        return calibration
+    eligible = fit_calibration(mine, ELIGIBLE_FEATURES)
+    return replace(calibration, eligible=eligible, eligible_at=floors)
+
+
 def served(calibration: Calibration, rows: list[dict], threshold: float) -> np.ndarray:
     """Which of ``rows`` ``Scan.judge`` makes a "match" at ``threshold``: ``may_match``, and
     the points a match needs (those the evidence counts in its segment)."""
@@ -188,7 +215,7 @@ def main(argv: list[str] | None = None) -> dict:
     check_rows = collect(
         engine, counts, args.seed + 1, unseen, foreign, truth_points, "check frames", args.told
     )
-    calibration = fit_calibration(fit_rows, SCENE_FEATURES)
+    calibration = fit_scene(fit_rows)
     accept = acceptance(calibration, fit_rows)
     about = {
         "fitted": datetime.now(UTC).isoformat(timespec="seconds"),
@@ -200,6 +227,12 @@ def main(argv: list[str] | None = None) -> dict:
         "fit": judge(calibration, fit_rows, accept),
         "check": judge(calibration, check_rows, accept),
         "accept": accept,
+        "eligible": {
+            "at": calibration.eligible_at,
+            "fit_instances": sum(calibration.is_eligible(row) for row in fit_rows),
+        }
+        if calibration.eligible is not None
+        else None,
         "accept_rule": "the lowest threshold of 99.5 % precision on the fitted frames of the "
         f"instances the service accepts, at least {ACCEPT_FLOOR}: a match also needs "
         f"{MATCH_POINTS} points and the chain's own confidence at least {CHAIN_AGREES}",
@@ -209,8 +242,7 @@ def main(argv: list[str] | None = None) -> dict:
         },
         "seconds": round(time.perf_counter() - began, 1),
     }
-    calibration = Calibration(*[getattr(calibration, f) for f in ("features", "weights",
-        "bias", "mean", "spread")], about, accept)  # fmt: skip
+    calibration = replace(calibration, about=about, accept=accept)
     if args.rows:
         args.rows.write_text(json.dumps({"fit": fit_rows, "check": check_rows}, default=float))
     if args.told:  # beside the calibration of frames told nothing, which stays as it is

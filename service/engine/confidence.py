@@ -25,13 +25,16 @@ as ``confidence.json``. The verdict follows: ``match`` at or above the acceptanc
 own: the lowest at which 99.5 % of the accepted answers it was fitted on were right),
 ``no_match`` below ``reject_below``, ``uncertain`` between; every verdict but ``match`` says
 why. A detection's calibration (``SCENE_FEATURES``) may carry a second one, ``told``, fitted on
-frames whose requests named the parts they hold (``candidates``).
+frames whose requests named the parts they hold (``candidates``); and each may carry one for the
+instances that may be a match at all (``eligible``, where every measure of ``eligible_at`` is at
+least its value), fitted on those alone: most instances are plainly wrong, and a fit on them all
+sets its weights where nothing is decided (docs/decisions.md#detect).
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +43,12 @@ FEATURES = ("fit", "coverage", "margin", "alike", "points", "size", "misfit", "m
 # a detection in a whole frame (``Engine.detect``): the chain's confidence for its points, and
 # what the frame says of its pose (``scene.evidence``)
 SCENE_FEATURES = ("chain", "fit", "coverage", "margin", "seen", "through", "explained", "points")
+# ... and of one that may be a match (``Calibration.eligible``): the share of its segment it
+# leaves, on a log scale, so that half a segment shared with a touching part is no outlier
+# among shares near 1 (docs/decisions.md#detect)
+ELIGIBLE_FEATURES = (
+    "chain", "fit", "coverage", "margin", "seen", "through", "unexplained", "points"
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -54,6 +63,10 @@ class Calibration:
     # a detection's, where the request names its candidates: the margin to the other parts
     # then counts only those named (docs/decisions.md#detect)
     told: Calibration | None = None
+    # a detection's, for the instances that may be a match: those whose measures are at least
+    # ``eligible_at``'s values (the chain's own word and the points a match needs)
+    eligible: Calibration | None = None
+    eligible_at: dict[str, float] = field(default_factory=dict)
 
     @classmethod
     def load(cls, path: Path) -> Calibration:
@@ -61,10 +74,10 @@ class Calibration:
 
     @classmethod
     def of(cls, document: dict, source: str = "the calibration") -> Calibration:
-        unknown = set(document["features"]) - set(FEATURES) - set(SCENE_FEATURES)
+        unknown = set(document["features"]) - {*FEATURES, *SCENE_FEATURES, *ELIGIBLE_FEATURES}
         if unknown:
             raise ValueError(f"{source}: features this engine does not measure: {sorted(unknown)}")
-        told = document.get("told")
+        told, eligible = document.get("told"), document.get("eligible")
         return cls(
             tuple(document["features"]),
             np.asarray(document["weights"], dtype=np.float64),
@@ -74,6 +87,8 @@ class Calibration:
             document.get("about", {}),
             float(document.get("accept", 0.9)),
             None if told is None else cls.of(told, f"{source} (told)"),
+            None if eligible is None else cls.of(eligible, f"{source} (eligible)"),
+            {k: float(v) for k, v in document.get("eligible_at", {}).items()},
         )
 
     def document(self) -> dict:
@@ -88,15 +103,24 @@ class Calibration:
         }
         if self.told is not None:
             document["told"] = self.told.document()
+        if self.eligible is not None:
+            document["eligible"] = self.eligible.document()
+            document["eligible_at"] = self.eligible_at
         return document
 
     def save(self, path: Path) -> None:
         Path(path).write_text(json.dumps(self.document(), indent=2) + "\n")
 
     def confidence(self, measures: dict[str, float]) -> float:
+        if self.eligible is not None and self.is_eligible(measures):
+            return self.eligible.confidence(measures)
         values = np.array([measures[name] for name in self.features])
         z = float(((values - self.mean) / self.spread) @ self.weights + self.bias)
         return float(1.0 / (1.0 + np.exp(-np.clip(z, -50, 50))))
+
+    def is_eligible(self, measures: dict[str, float]) -> bool:
+        """Whether ``eligible`` judges these measures: each at least its ``eligible_at``."""
+        return all(measures[name] >= least for name, least in self.eligible_at.items())
 
 
 def measures(

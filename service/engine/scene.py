@@ -176,7 +176,8 @@ def evidence(
     confidence for its points (as a logit), fit, coverage and margin; of what the camera
     should see of the part at its pose, the share the frame's depth shows (of what nothing
     nearer hides) and the share the camera saw through; the share of its segment's points it
-    explains, and how many (log10)."""
+    explains (and, ``ELIGIBLE_FEATURES``, log10 of the share it leaves plus 0.01), and how
+    many (log10)."""
     chosen = min(max(answer.confidence or 0.0, 1e-4), 1 - 1e-4)
     toward = (viewpoint - answer.translation) @ answer.rotation  # the camera, model frame
     view = int(entry.views.nearest(toward[None])[0])
@@ -198,6 +199,7 @@ def evidence(
         "seen": seen,
         "through": through,
         "explained": claimed / max(region, 1),
+        "unexplained": float(np.log10(1 - claimed / max(region, 1) + 0.01)),
         "points": float(np.log10(max(claimed, 1))),
     }
 

@@ -88,6 +88,13 @@ def test_one_part_found_twice_at_one_pose_is_one_instance(engine, one_box):
     assert kept == [a]
 
 
+def one_fit(**changes) -> Calibration:
+    """The shipped detections' calibration with ``changes``, judging every instance alone (its
+    fit on the instances that may be a match set aside)."""
+    shipped = Calibration.load(SETTINGS.detect_confidence_path)
+    return replace(shipped, eligible=None, eligible_at={}, **changes)
+
+
 def test_a_part_seen_by_too_few_points_is_not_a_match(engine):
     # with the detections' calibration, a box 3.5 m away (about 110 points) is refused as
     # too small to tell from a look-alike, whatever its confidence; 2 m away it is a match
@@ -114,7 +121,7 @@ def test_a_part_seen_by_too_few_points_is_not_a_match(engine):
 def test_a_frame_told_its_candidates_is_judged_by_the_told_calibration(engine, tmp_path):
     # the shipped detections' calibration, with a told one beside it that doubts everything
     shipped = Calibration.load(SETTINGS.detect_confidence_path)
-    doubting = replace(shipped, bias=-50.0, about={"note": "refuses every instance"})
+    doubting = one_fit(bias=-50.0, about={"note": "refuses every instance"})
     path = tmp_path / "detect_confidence.json"
     replace(shipped, told=doubting).save(path)
     loaded = Calibration.load(path)
@@ -136,10 +143,34 @@ def test_a_frame_told_its_candidates_is_judged_by_the_told_calibration(engine, t
     assert [d.answer.verdict for d in everyone] == ["match"]  # naming them all is not told
 
 
+def test_an_instance_that_may_match_is_judged_by_the_calibration_fitted_on_those(engine, tmp_path):
+    # the shipped detections' calibration, with an eligible one beside it that doubts
+    # everything: the box, which the chain is sure of on many points, is judged by it; told
+    # that only a frame of 10^9 points may match, the box is judged by the one on every instance
+    shipped = Calibration.load(SETTINGS.detect_confidence_path)
+    doubting = replace(shipped, bias=-50.0, eligible=None, eligible_at={})
+    mesh = trimesh.creation.box((0.08, 0.06, 0.04))
+    frame = frame_of(shoot([(mesh, *resting(mesh, spin(25), 0.0, 0.0))], table()))
+    verdicts = {}
+    for least in (2.0, 9.0):
+        path = tmp_path / f"detect_confidence_{least}.json"
+        floors = {"chain": 0.0, "points": least}
+        replace(shipped, eligible=doubting, eligible_at=floors).save(path)
+        loaded = Calibration.load(path)
+        assert loaded.eligible is not None and loaded.eligible_at == floors
+        calibrated = Engine(engine.mapper, SETTINGS.engine, engine.calibration, loaded)
+        calibrated.load([engine.entry("box").reference])
+        found = calibrated.detect(frame, floor=0.0).detections
+        assert [d.answer.label for d in found] == ["box"]
+        verdicts[least] = (found[0].answer.verdict, found[0].answer.confidence)
+    assert verdicts[2.0][0] == "no_match" and verdicts[2.0][1] < 0.01
+    assert verdicts[9.0][0] == "match"
+
+
 def test_a_match_needs_the_one_part_search_not_to_refuse_it(engine):
     # a frame calibration that trusts every instance: an unregistered cylinder, posed as the
     # only registered part (a box), is still refused, because the chain alone doubts it
-    trusting = replace(Calibration.load(SETTINGS.detect_confidence_path), bias=50.0)
+    trusting = one_fit(bias=50.0)
     calibrated = Engine(engine.mapper, SETTINGS.engine, engine.calibration, trusting)
     calibrated.load([engine.entry("box").reference])
     can = trimesh.creation.cylinder(radius=0.035, height=0.07)
@@ -174,7 +205,7 @@ def test_an_instance_the_frame_doubts_is_asked_about_once_more(engine, one_box):
     _, shot = one_box
     shipped = Calibration.load(SETTINGS.detect_confidence_path)
     for accept, asked in ((0.999, 2), (0.01, 1)):
-        judged = replace(shipped, bias=0.0, weights=0 * shipped.weights, accept=accept)
+        judged = one_fit(bias=0.0, weights=0 * shipped.weights, accept=accept)
         calibrated = Engine(engine.mapper, SETTINGS.engine, engine.calibration, judged)
         calibrated.load([engine.entry("box").reference])
         calls = counting(calibrated)
@@ -189,7 +220,7 @@ def test_a_segment_nothing_was_found_in_is_asked_about_from_another_sample(engin
     # a sample of the box's segment (close up, and thinned for a far smaller part: more
     # points than a sample), finds nothing it lists, and is asked once more about another
     # sample of the same points
-    doubting = replace(Calibration.load(SETTINGS.detect_confidence_path), bias=-50.0)
+    doubting = one_fit(bias=-50.0)
     calibrated = Engine(engine.mapper, SETTINGS.engine, engine.calibration, doubting)
     cube = trimesh.creation.box((0.02, 0.02, 0.02))
     points, faces = sample_surface_faces(cube, 2048, 0)

@@ -4,8 +4,9 @@ service would accept, not on the confidence alone."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from evaluation.calibrate_detect import acceptance, served, served_figures
+from evaluation.calibrate_detect import acceptance, fit_scene, served, served_figures
 from service.engine.confidence import SCENE_FEATURES as FEATURES
 from service.engine.confidence import Calibration
 
@@ -20,7 +21,8 @@ def by_chain() -> Calibration:
 def row(chain: float, points: int, right: bool, family: str = "scene") -> dict:
     logit = float(np.log(chain / (1 - chain)))
     return {"chain": logit, "fit": 1.0, "coverage": 1.0, "margin": 0.5, "seen": 1.0,
-            "through": 0.0, "explained": 1.0, "points": float(np.log10(points)),
+            "through": 0.0, "explained": 1.0, "unexplained": -2.0,
+            "points": float(np.log10(points)),
             "right": right, "family": family}  # fmt: skip
 
 
@@ -45,3 +47,24 @@ def test_the_threshold_is_the_lowest_where_what_is_served_is_right():
     assert acceptance(calibration, rows) == 0.75
     figures = served_figures(calibration, rows, 0.75)
     assert figures == {"scene": {"right": 3, "right_accepted": 1.0, "wrong_accepted": 0}}
+
+
+def test_the_instances_that_may_match_get_a_fit_of_their_own():
+    # many plainly wrong instances the chain refuses, and among those it does not, the right
+    # ones fit better than the wrong ones: the fit on those alone tells them apart
+    rng = np.random.default_rng(0)
+    refused = [row(c, 1000, False) for c in rng.uniform(0.02, 0.3, 300)]
+    right = [{**row(c, 1000, True), "fit": f} for c, f in zip(rng.uniform(0.6, 0.99, 40),
+             rng.uniform(0.9, 1.0, 40), strict=True)]  # fmt: skip
+    wrong = [{**row(c, 1000, False), "fit": f} for c, f in zip(rng.uniform(0.6, 0.99, 20),
+             rng.uniform(0.6, 0.85, 20), strict=True)]  # fmt: skip
+    calibration = fit_scene(refused + right + wrong)
+    assert calibration.eligible is not None
+    assert calibration.eligible_at == {"chain": 0.0, "points": pytest.approx(np.log10(150))}
+    assert calibration.eligible.weights[calibration.eligible.features.index("fit")] > 0
+    assert all(calibration.is_eligible(r) for r in right + wrong)
+    assert not any(calibration.is_eligible(r) for r in refused)
+    # the eligible fit decides them: every right one above every wrong one
+    assert min(map(calibration.confidence, right)) > max(map(calibration.confidence, wrong))
+    # too few wrong ones among those that may match: one fit for all
+    assert fit_scene(refused + right + wrong[:5]).eligible is None
