@@ -13,7 +13,7 @@ from scipy.sparse.csgraph import connected_components
 
 from service.engine.frame import Frame
 from service.engine.surroundings import groups
-from service.engine.tuning import LINK_FOOTPRINTS, LINK_NOISE, NORMAL_PIXELS, SMOOTH_DEG
+from service.engine.tuning import LINK_FOOTPRINTS, LINK_NOISE
 
 # neighbouring pixels linked: right, down, the diagonals, and two along (across a missing one)
 OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1), (0, 2), (2, 0))
@@ -81,55 +81,6 @@ def components(count: int, first: np.ndarray, second: np.ndarray) -> np.ndarray:
     # weak components of the one-way edges: the same labels, without symmetrising the graph
     _, labels = connected_components(graph.tocsr(), directed=True, connection="weak")
     return labels
-
-
-def patches(frame: Frame, angle: float) -> tuple[np.ndarray, np.ndarray]:
-    """(N,) a segment label and (N,) a patch label per point of an organized frame: a patch
-    is a part of a segment that no concave crease crosses (neighbouring pixels whose normals
-    turn towards each other by more than ``SMOOTH_DEG``): where two parts touch, or one
-    rests on another, the surface folds inwards. The pixels along a crease are cut out, the
-    rest split into components, and each crease pixel given to a neighbouring patch."""
-    ranges = frame.ranges()
-    first, second, _ = grid_links(frame, angle, ranges)
-    labels = components(len(frame), first, second)
-    normals = grid_normals(frame)
-    offset = np.take(frame.points, first, axis=0) - np.take(frame.points, second, axis=0)
-    turned = np.einsum("ij,ij->i", normals[first] - normals[second], offset)
-    cosine = np.einsum("ij,ij->i", normals[first], normals[second])
-    crease = np.isfinite(cosine) & (cosine < np.cos(np.radians(SMOOTH_DEG))) & (turned < 0)
-    on_crease = np.zeros(len(frame), dtype=bool)
-    on_crease[first[crease]] = on_crease[second[crease]] = True
-    clear = ~on_crease[first] & ~on_crease[second]
-    parts = components(len(frame), first[clear], second[clear])
-    for _ in range(2 * NORMAL_PIXELS):  # crease pixels join a neighbouring patch
-        lost = on_crease[first] & ~on_crease[second]
-        parts[first[lost]] = parts[second[lost]]
-        found = np.zeros(len(frame), dtype=bool)
-        found[first[lost]] = True
-        lost = on_crease[second] & ~on_crease[first]
-        parts[second[lost]] = parts[first[lost]]
-        found[second[lost]] = True
-        on_crease &= ~found
-    return labels, parts
-
-
-def grid_normals(frame: Frame) -> np.ndarray:
-    """(N, 3) each pixel's surface normal, towards the camera, from its neighbours
-    ``NORMAL_PIXELS`` away across and down the grid; NaN where one of them is missing."""
-    height, width = frame.shape
-    step, reach = frame.step, NORMAL_PIXELS
-    grid_height, grid_width = (height + step - 1) // step, (width + step - 1) // step
-    image = np.full((grid_height + 2 * reach, grid_width + 2 * reach, 3), np.nan)
-    rows, columns = frame.rows // step + reach, frame.columns // step + reach
-    image[rows, columns] = frame.points
-    across = image[rows, columns + reach] - image[rows, columns - reach]
-    down = image[rows + reach, columns] - image[rows - reach, columns]
-    normals = np.cross(across, down)
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        normals = normals / length
-    towards = np.einsum("ij,ij->i", normals, frame.viewpoint - frame.points)
-    return normals * np.where(towards < 0, -1.0, 1.0)[:, None]
 
 
 def adjacent(frame: Frame, labels: np.ndarray, chosen: np.ndarray, reach: int) -> set[tuple]:
