@@ -51,6 +51,8 @@ class EngineSettings(BaseModel):
     hypotheses: tuple[str, ...] = ("views", "principal-axes", "mapped")
     views: int = Field(100, ge=4)  # single-camera views rendered per reference
     view_candidates: int = Field(6, ge=1)  # parts the nearest rendered views propose
+    # ... and the next this many, searched where none of the first fits well (0: never)
+    more_views: int = Field(4, ge=0)
     # a candidate's hypotheses kept by the quick first look (docs/decisions.md#speed)
     screened: int = Field(12, ge=1)
     ransac_iterations: int = Field(200, ge=1)  # at most; fewer once an all-inlier draw is sure

@@ -65,6 +65,7 @@ from service.engine.tuning import (
     KEEP_SHARE,
     LINE,
     MAX_ALTERNATIVES,
+    MORE_VIEWS_BELOW,
     PER_PART,
     POOR_FIT,
     RIGHT_EITHER_WAY,
@@ -467,12 +468,14 @@ class Engine:
         self, query: Query, observed: Observed, ranking: Ranking, search: Search
     ) -> list[Fit]:
         """Steps 5-7, pass by pass until a fit is excellent: the whole part (principal axes),
-        single views (rendered views), the pairs the learned mapping makes."""
+        single views (rendered views), more parts' views where none fits well, the pairs the
+        learned mapping makes."""
         fits: list[Fit] = []
-        for plan_of in (self._whole_part, self._single_views, self._mapped_pairs):
+        passes = (self._whole_part, self._single_views, self._more_views, self._mapped_pairs)
+        for plan_of in passes:
             if excellent(fits, self.settings) or self._hopeless(fits, plan_of):
                 break
-            plan = plan_of(query, observed, ranking)
+            plan = plan_of(query, observed, ranking, fits)
             if plan is None:
                 continue
             made = search.hypothesise(plan)  # 5
@@ -491,14 +494,18 @@ class Engine:
         refined = [f.score for f in fits if f.refined]  # none: nothing to judge it by
         return bool(refined) and max(refined) < floor
 
-    def _whole_part(self, query: Query, observed: Observed, ranking: Ranking) -> Plan | None:
+    def _whole_part(
+        self, query: Query, observed: Observed, ranking: Ranking, fits: list[Fit]
+    ) -> Plan | None:
         """The shortlist's whole-part hypotheses (principal axes): what a full cloud needs."""
         if "principal-axes" not in query.sources:
             return None
         planned = {int(row): ["principal-axes"] for row in ranking.shortlist}
         return Plan(planned, WHOLE_REFINED, ranking.first, screened=WHOLE_SCREENED)
 
-    def _single_views(self, query: Query, observed: Observed, ranking: Ranking) -> Plan | None:
+    def _single_views(
+        self, query: Query, observed: Observed, ranking: Ranking, fits: list[Fit]
+    ) -> Plan | None:
         """The parts whose rendered views' grids look most like the observation's, and the
         shortlist, from every rendered view of each: what one camera's view needs. Parts
         only the views propose get their whole-part hypotheses too; more parts are rescued
@@ -506,16 +513,42 @@ class Engine:
         if "views" not in query.sources:
             return None
         shortlist = ranking.shortlist
-        rows = self._nearest_views(
-            query.snapshot, observed.grid, observed.size, query.allowed, query.top_k
-        )
+        count = query.top_k or self.settings.view_candidates
+        snapshot, allowed = query.snapshot, query.allowed
+        rows = self._nearest_views(snapshot, observed.grid, observed.size, allowed, count)
         rows += [row for row in shortlist if row not in rows]
         query.clock.lap("classify")
         whole = ["principal-axes"] if "principal-axes" in query.sources else []
         planned = {row: ["views", *(whole if row not in shortlist else [])] for row in rows}
         return Plan(planned, self.settings.refine_best, ranking.first, rescue=True)
 
-    def _mapped_pairs(self, query: Query, observed: Observed, ranking: Ranking) -> Plan | None:
+    def _more_views(
+        self, query: Query, observed: Observed, ranking: Ranking, fits: list[Fit]
+    ) -> Plan | None:
+        """Where no refined fit fits well (``MORE_VIEWS_BELOW``), the next
+        ``settings.more_views`` parts whose rendered views look most like the observation,
+        from every view of each: a part never seen in training, or seen from an unlucky side,
+        may rank just below the first (docs/decisions.md#single-views). Not where the request
+        set the budget (``top_k``)."""
+        more, first = self.settings.more_views, self.settings.view_candidates
+        if "views" not in query.sources or not more or query.top_k:
+            return None
+        if max((f.score for f in fits if f.refined), default=0.0) >= MORE_VIEWS_BELOW:
+            return None
+        searched = {f.row for f in fits}
+        rows = self._nearest_views(
+            query.snapshot, observed.grid, observed.size, query.allowed, first + more
+        )
+        rows = [row for row in rows[first:] if row not in searched]
+        if not rows:
+            return None
+        query.clock.lap("classify")
+        whole = ["principal-axes"] if "principal-axes" in query.sources else []
+        return Plan({row: ["views", *whole] for row in rows}, self.settings.refine_best)
+
+    def _mapped_pairs(
+        self, query: Query, observed: Observed, ranking: Ranking, fits: list[Fit]
+    ) -> Plan | None:
         """The shortlist posed from the pairs of points the learned mapping makes (RANSAC, or
         the paper's least squares alone)."""
         paired = [s for s in query.sources if s in ("mapped", "paper")]
@@ -817,10 +850,10 @@ class Engine:
         observed_grid: np.ndarray,
         size: float,
         allowed: np.ndarray,
-        top_k: int | None,
+        count: int,
     ) -> list[int]:
-        """The rows of the parts whose rendered views look most like the observation (cosine
-        of the grids' features, among views of a plausible size), best first."""
+        """The rows of the ``count`` parts whose rendered views look most like the observation
+        (cosine of the grids' features, among views of a plausible size), best first."""
         settings = self.settings
         similarity = snapshot.view_keys @ view_features(observed_grid, settings.grid_blur)[0]
         low, high = settings.view_size_ratio
@@ -829,7 +862,6 @@ class Engine:
         similarity = np.where(usable, similarity, -np.inf)
         starts = np.flatnonzero(np.diff(snapshot.view_owner, prepend=-1))  # rows are in blocks
         best_per_row = np.maximum.reduceat(similarity, starts)
-        count = top_k or settings.view_candidates
         return [int(r) for r in np.argsort(-best_per_row)[:count] if np.isfinite(best_per_row[r])]
 
     def _unanswered(self, snapshot, allowed, observed, scores, reasons=None) -> Alignment:

@@ -62,6 +62,7 @@ PER_PART = 2  # hypotheses refined of one part in a pass
 FIRST_REFINED = 1  # hypotheses of eq. (4)'s sure first choice refined in any case
 RESCUE_BELOW = 0.7  # no refined fit x coverage this high: more parts are rescued
 RESCUE_EACH = 2  # hypotheses refined of each rescued part
+MORE_VIEWS_BELOW = 0.6  # no refined fit x coverage this high: more parts' views are searched
 SURFACE_NEIGHBOURS = 8  # a sample's neighbours searched when correcting the field's answer
 BEHIND = 1.0  # a point more sample spacings than this behind a tangent plane is not on it
 CLOSE_RAD, CLOSE = 0.01, 0.5  # steps this small switch to the corrected nearest samples

@@ -112,6 +112,34 @@ def test_the_mapped_pairs_follow_single_views_that_fit_well_enough(engine_with):
 
 
 @needs_model
+def test_where_no_part_fits_well_the_next_parts_views_are_searched(engine_with):
+    """A cloud no part fits well: the search goes on to the parts whose rendered views rank
+    next (``more_views``), and to those alone; with 0 it does not."""
+    from service.engine.grid import grid
+    from service.engine.search import Search
+    from service.engine.tuning import MORE_VIEWS_BELOW
+
+    rng = np.random.default_rng(8)
+    blob = rng.normal(size=(2048, 3)) * [0.04, 0.03, 0.02] + [0, 0, 0.8]  # no registered part
+    searched = {}
+    for more in (0, 4):
+        engine = engine_with(more_views=more, hopeless=0.01, mapped_from=0.99)
+        query = engine.query(None, None, True, None, None)
+        observed = engine.normalise(query, engine.set_aside(query, blob)[0])
+        observed.mapped = engine.map(observed.points)
+        observed.grid = grid(observed.mapped)
+        ranking = engine.classify(query, observed)
+        fits = engine.search(query, observed, ranking, Search(engine.settings, query, observed))
+        assert max(f.score for f in fits if f.refined) < MORE_VIEWS_BELOW  # none fits well
+        searched[more] = {f.row for f in fits}
+        nearest = engine._nearest_views(
+            query.snapshot, observed.grid, observed.size, query.allowed, 6 + more
+        )
+    added = searched[4] - searched[0]
+    assert added and added <= set(nearest[6:])
+
+
+@needs_model
 def test_poses_refined_together_end_their_turn_where_one_by_one_would(engine_with, references):
     """``Search.refine_in_turn`` refines a pass's fits together, yet each refined one is posed
     as refining it alone would, and the fits past where the turn stops are left as they were
@@ -129,7 +157,7 @@ def test_poses_refined_together_end_their_turn_where_one_by_one_would(engine_wit
     observed.grid = grid(observed.mapped)
     ranking = engine.classify(query, observed)
     search = Search(engine.settings, query, observed)
-    plan = engine._single_views(query, observed, ranking)
+    plan = engine._single_views(query, observed, ranking, [])
     fits = search.verify(search.hypothesise(plan), plan)[:6]
     alone = copy.deepcopy(fits)
     for fit in alone:
