@@ -88,24 +88,33 @@ def test_a_search_of_the_mapped_pairs_alone_is_never_hopeless_before_it_starts(
     assert answer.fit * answer.coverage > 0.3
 
 
+def blob() -> np.ndarray:
+    """A cloud no registered part is: a Gaussian blob 0.8 m in front of the camera."""
+    rng = np.random.default_rng(8)
+    return rng.normal(size=(2048, 3)) * [0.04, 0.03, 0.02] + [0, 0, 0.8]
+
+
+def searched(engine, cloud: np.ndarray) -> tuple:
+    """The query, observation and fits of ``engine``'s search passes for ``cloud``."""
+    from service.engine.grid import grid
+    from service.engine.search import Search
+
+    query = engine.query(None, None, True, None, None)
+    observed = engine.normalise(query, engine.set_aside(query, cloud)[0])
+    observed.mapped = engine.map(observed.points)
+    observed.grid = grid(observed.mapped)
+    ranking = engine.classify(query, observed)
+    fits = engine.search(query, observed, ranking, Search(engine.settings, query, observed))
+    return query, observed, fits
+
+
 @needs_model
 def test_the_mapped_pairs_follow_single_views_that_fit_well_enough(engine_with):
     """A cloud whose single views fit it under ``mapped_from``: the search does not go on to
     the mapped pairs (no refined fit of theirs); with 0 it does."""
-    from service.engine.grid import grid
-    from service.engine.search import Search
-
-    rng = np.random.default_rng(8)
-    blob = rng.normal(size=(2048, 3)) * [0.04, 0.03, 0.02] + [0, 0, 0.8]  # no registered part
     sources = {}
     for floor in (0.0, 0.99):
-        engine = engine_with(mapped_from=floor, hopeless=0.01)
-        query = engine.query(None, None, True, None, None)
-        observed = engine.normalise(query, engine.set_aside(query, blob)[0])
-        observed.mapped = engine.map(observed.points)
-        observed.grid = grid(observed.mapped)
-        ranking = engine.classify(query, observed)
-        fits = engine.search(query, observed, ranking, Search(engine.settings, query, observed))
+        _, _, fits = searched(engine_with(mapped_from=floor, hopeless=0.01), blob())
         assert max(f.score for f in fits if f.refined) < 0.99  # not excellent: a third pass
         sources[floor] = {f.source for f in fits if f.refined}
     assert "mapped" in sources[0.0] and "mapped" not in sources[0.99]
@@ -115,27 +124,18 @@ def test_the_mapped_pairs_follow_single_views_that_fit_well_enough(engine_with):
 def test_where_no_part_fits_well_the_next_parts_views_are_searched(engine_with):
     """A cloud no part fits well: the search goes on to the parts whose rendered views rank
     next (``more_views``), and to those alone; with 0 it does not."""
-    from service.engine.grid import grid
-    from service.engine.search import Search
     from service.engine.tuning import MORE_VIEWS_BELOW
 
-    rng = np.random.default_rng(8)
-    blob = rng.normal(size=(2048, 3)) * [0.04, 0.03, 0.02] + [0, 0, 0.8]  # no registered part
-    searched = {}
+    rows = {}
     for more in (0, 4):
         engine = engine_with(more_views=more, hopeless=0.01, mapped_from=0.99)
-        query = engine.query(None, None, True, None, None)
-        observed = engine.normalise(query, engine.set_aside(query, blob)[0])
-        observed.mapped = engine.map(observed.points)
-        observed.grid = grid(observed.mapped)
-        ranking = engine.classify(query, observed)
-        fits = engine.search(query, observed, ranking, Search(engine.settings, query, observed))
+        query, observed, fits = searched(engine, blob())
         assert max(f.score for f in fits if f.refined) < MORE_VIEWS_BELOW  # none fits well
-        searched[more] = {f.row for f in fits}
+        rows[more] = {f.row for f in fits}
         nearest = engine._nearest_views(
             query.snapshot, observed.grid, observed.size, query.allowed, 6 + more
         )
-    added = searched[4] - searched[0]
+    added = rows[4] - rows[0]
     assert added and added <= set(nearest[6:])
 
 
