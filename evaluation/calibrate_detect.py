@@ -38,12 +38,12 @@ from evaluation import frames as whole
 from evaluation.calibrate import PRECISION, fit_calibration, judge
 from evaluation.metrics import add_s, diameter
 from service.api.clouds import organized
-from service.engine.confidence import ELIGIBLE_FEATURES, SCENE_FEATURES, Calibration
+from service.engine.confidence import ELIGIBLE_FEATURES, SCENE_FEATURES, Calibration, meets
 from service.engine.engine import Engine
 from service.engine.frame import Frame
 from service.engine.mapping import Mapper
 from service.engine.sampling import sample_surface, sample_surface_faces
-from service.engine.scene import may_match
+from service.engine.scene import match_floors, may_match
 from service.engine.tuning import CHAIN_AGREES, MATCH_POINTS
 from service.settings import MODELS_DIR, Settings
 
@@ -122,15 +122,6 @@ def collect(
     return rows
 
 
-def eligible_at() -> dict[str, float]:
-    """The least evidence of an instance that may be a match (``Scan.judge``): the chain's own
-    confidence ``CHAIN_AGREES`` (its logit) and ``MATCH_POINTS`` points (log10)."""
-    return {
-        "chain": float(np.log(CHAIN_AGREES / (1 - CHAIN_AGREES))),
-        "points": float(np.log10(MATCH_POINTS)),
-    }
-
-
 def fit_scene(rows: list[dict]) -> Calibration:
     """The detection's calibration: a logistic regression on every instance, and one on those
     that may be a match alone, which judges them. Most instances are plainly wrong (the
@@ -138,8 +129,8 @@ def fit_scene(rows: list[dict]) -> Calibration:
     where nothing is decided, and the threshold by the few wrong ones that look right
     (docs/decisions.md#detect)."""
     calibration = fit_calibration(rows, SCENE_FEATURES)
-    floors = eligible_at()
-    mine = [row for row in rows if all(row[k] >= least for k, least in floors.items())]
+    floors = match_floors()
+    mine = [row for row in rows if meets(row, floors)]
     right = sum(row["right"] for row in mine)
     if min(right, len(mine) - right) < ELIGIBLE_EACH:  # too few to fit apart
         return calibration

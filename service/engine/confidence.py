@@ -120,7 +120,12 @@ class Calibration:
 
     def is_eligible(self, measures: dict[str, float]) -> bool:
         """Whether ``eligible`` judges these measures: each at least its ``eligible_at``."""
-        return all(measures[name] >= least for name, least in self.eligible_at.items())
+        return meets(measures, self.eligible_at)
+
+
+def meets(measures: dict[str, float], floors: dict[str, float]) -> bool:
+    """Whether each of ``floors``' measures is at least its value."""
+    return all(measures[name] >= least for name, least in floors.items())
 
 
 def measures(

@@ -191,6 +191,7 @@ def evidence(
     else:
         seen = answer.coverage
     score = answer.fit * answer.coverage
+    explained = claimed / max(region, 1)
     return {
         "chain": float(np.log(chosen / (1 - chosen))),
         "fit": answer.fit,
@@ -198,8 +199,8 @@ def evidence(
         "margin": score - answer.runner_up,
         "seen": seen,
         "through": through,
-        "explained": claimed / max(region, 1),
-        "unexplained": float(np.log10(1 - claimed / max(region, 1) + 0.01)),
+        "explained": explained,
+        "unexplained": float(np.log10(1 - explained + 0.01)),
         "points": float(np.log10(max(claimed, 1))),
     }
 
@@ -207,6 +208,16 @@ def evidence(
 def chain_confidence(said: dict[str, float]) -> float:
     """The chain's own confidence for an instance's points, from its ``evidence``."""
     return float(1 / (1 + np.exp(-said["chain"])))
+
+
+def match_floors() -> dict[str, float]:
+    """The least ``evidence`` of an instance that may be a match (``Scan.judge``): the chain's
+    own confidence ``CHAIN_AGREES`` (its logit) and ``MATCH_POINTS`` points (log10); a
+    detection calibration's fit on such instances is fitted on these (``eligible_at``)."""
+    return {
+        "chain": float(np.log(CHAIN_AGREES / (1 - CHAIN_AGREES))),
+        "points": float(np.log10(MATCH_POINTS)),
+    }
 
 
 def may_match(said: dict[str, float], confidence: float, threshold: float) -> bool:

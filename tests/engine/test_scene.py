@@ -148,7 +148,7 @@ def test_an_instance_that_may_match_is_judged_by_the_calibration_fitted_on_those
     # everything: the box, which the chain is sure of on many points, is judged by it; told
     # that only a frame of 10^9 points may match, the box is judged by the one on every instance
     shipped = Calibration.load(SETTINGS.detect_confidence_path)
-    doubting = replace(shipped, bias=-50.0, eligible=None, eligible_at={})
+    doubting = one_fit(bias=-50.0)
     mesh = trimesh.creation.box((0.08, 0.06, 0.04))
     frame = frame_of(shoot([(mesh, *resting(mesh, spin(25), 0.0, 0.0))], table()))
     verdicts = {}
