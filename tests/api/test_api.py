@@ -135,6 +135,7 @@ def test_a_part_whose_turns_nearly_fit_is_registered_with_a_warning(api):
     assert len(answer["symmetry"]["near"]) > 0
     (said,) = [w for w in answer["warnings"] if "nearly fit" in w]
     assert "flange-copy" in said and "alternatives" in said
+    assert "register its mesh" in said  # a cloud may hide its half turn (docs/decisions.md)
     assert api.delete("/references/flange-copy").status_code == 204
 
 

@@ -419,6 +419,9 @@ def warnings(
         said.append(
             f"turns of {reference.name} by {turns} degrees nearly fit its own surface (only a "
             "detail tells them apart): /align tries them and names those that fit alike as "
-            "alternatives; a view that does not show the detail may be answered as ambiguous"
+            "alternatives; a view that does not show the detail may be answered as ambiguous. "
+            "If a turn is a true symmetry of the part and it was registered from a cloud, "
+            "register its mesh: a cloud's estimated normals can hide a symmetry, and then one "
+            "surface may be answered at poses that turn apart"
         )
     return said
