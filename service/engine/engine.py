@@ -758,7 +758,7 @@ class Engine:
         # some of the table left in, fits as poorly (docs/decisions.md#decide)
         if values["fit"] < POOR_FIT and (answer.verdict == "no_match" or answer.confidence is None):
             size = answer.size_ratio * entry.reference.scale
-            hint = self._unit_hint(query.snapshot.scales[query.allowed], size)
+            hint = self._unit_hint(query.snapshot.scales[query.allowed], size, toward=True)
             reasons += [hint] if hint else []
         return reasons
 
@@ -902,10 +902,17 @@ class Engine:
         hint = None if unit_ratio(nearest) else self._unit_hint(scales, size)
         return said + ([hint] if hint else [])
 
-    def _unit_hint(self, scales: np.ndarray, size: float) -> str | None:
+    def _unit_hint(self, scales: np.ndarray, size: float, toward: bool = False) -> str | None:
         """The reason naming the first unit in which an observation of radius ``size`` would
-        be the size of one of these ``scales``; None if in none."""
+        be the size of one of these ``scales``; None if in none. ``toward``: only a unit that
+        brings it nearer the references' median scale, for an observation of a size some
+        reference has: a gallery of parts in mixed units has a part of any cloud's size in
+        some other unit (docs/decisions.md#units-of-a-poor-fit)."""
+        typical = float(np.median(scales)) if len(scales) else size
+        off = abs(np.log(max(size, 1e-12) / typical))
         for factor in UNIT_FACTORS:
+            if toward and abs(np.log(max(size / factor, 1e-12) / typical)) >= off:
+                continue
             if self._plausible(scales, size / factor, self.settings.size_ratio).any():
                 return size_reason(factor, also=True)
         return None

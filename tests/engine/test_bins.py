@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from evaluation.metrics import add_s, diameter
+from evaluation.records import names_units
 from service.engine.confidence import Calibration
 from service.engine.engine import Engine
 from service.engine.mapping import Mapper
@@ -138,3 +139,17 @@ def test_a_bins_answer_is_a_match_only_from_its_own_threshold(duck, engines):
         else:
             assert answer.verdict == "match"
     assert refused  # some of the ten bins' answers are under it
+
+
+@needs_model
+def test_a_bin_never_told_the_viewpoint_is_refused_without_a_false_units_hint(duck, engines):
+    """Never told where the camera was, the bin's reading is not tried and the walls stay with
+    the part: refused. Its poor fit once brought "send millimetres": the shipped gallery holds
+    parts in millimetres beside those in metres, so a cloud of any size is some part's size
+    in another unit (docs/decisions.md#units-of-a-poor-fit)."""
+    mesh, scale = duck
+    looking, *_ = engines
+    for seed in range(4):
+        answer = looking.align(in_bin(mesh, scale, seed).points)
+        assert answer.verdict != "match"
+        assert not names_units(answer.reasons), (seed, answer.reasons)
