@@ -44,6 +44,7 @@ from service.engine.tuning import (
     FINISH_ITERATIONS,
     FINISH_POINTS,
     FRAGMENT,
+    FRAGMENTS_ADD,
     INSTANCE_FLOOR,
     JOIN_PIXELS,
     JOIN_SCALES,
@@ -263,8 +264,8 @@ class Scan:
 
     def instances(self, labels: np.ndarray, most: int) -> list[Instance]:
         """Each segment, largest first, searched until nothing more fits in it (``MAX_TRIES``
-        instances at most); then the segments where nothing was found, joined with a
-        neighbour in the image."""
+        instances at most); then the segments where nothing was found, with the fragments by
+        them (``with_fragments``), then joined with a neighbour in the image."""
         found: list[Instance] = []
         sizes = np.bincount(labels) if len(labels) else np.zeros(0, int)
         failed = []
@@ -281,10 +282,14 @@ class Scan:
                 if instance is None:
                     failed += [segment] if tries == 0 else []
                     break
-                found.append(instance)
-                self.free[instance.claimed] = False
+                self.take(instance, found)
+        # the failed segments' neighbours in the image: fragments, and other failed segments
+        small = np.flatnonzero((sizes > 0) & (sizes < MIN_SEGMENT))
+        chosen = np.concatenate([np.asarray(failed, dtype=np.intp), small])
+        near = adjacent(self.frame, labels, chosen, JOIN_PIXELS) if failed else set()
+        found += self.with_fragments(labels, sizes, failed, near, most - len(found))
         joins = 0
-        for a, b in sorted(adjacent(self.frame, labels, np.array(failed), JOIN_PIXELS)):
+        for a, b in sorted((a, b) for a, b in near if a in failed and b in failed):
             region = np.flatnonzero(((labels == a) | (labels == b)) & self.free)
             if len(found) >= most or joins == MAX_JOINS:
                 break
@@ -296,9 +301,42 @@ class Scan:
             joins += 1
             instance = self.instance(region)
             if instance is not None:
-                found.append(instance)
-                self.free[instance.claimed] = False
+                self.take(instance, found)
         return found
+
+    def with_fragments(
+        self, labels: np.ndarray, sizes: np.ndarray, failed: list[int], near: set, most: int
+    ) -> list[Instance]:
+        """The segments where nothing was found, each searched once more with the fragments
+        next to it in the image (``near``; too small to be searched alone) where they add
+        ``FRAGMENTS_ADD`` of its points: a part's points that a jump in depth cut off
+        (docs/decisions.md#detect). A segment an instance is found in is no longer failed."""
+        small = set(np.flatnonzero((sizes > 0) & (sizes < MIN_SEGMENT)).tolist())
+        pieces: dict[int, list[int]] = {}
+        for a, b in near:
+            if a in failed and b in small:
+                pieces.setdefault(a, []).append(b)
+            elif b in failed and a in small:
+                pieces.setdefault(b, []).append(a)
+        found: list[Instance] = []
+        for segment, fragments in sorted(pieces.items()):
+            if len(found) >= most or not self.in_time():
+                break
+            if sizes[fragments].sum() < FRAGMENTS_ADD * sizes[segment]:
+                continue  # a few points more: the same answer
+            region = np.flatnonzero(np.isin(labels, [segment, *fragments]) & self.free)
+            if not self.worth_searching(region):
+                continue
+            instance = self.instance(region, place=False)  # its views were placed before
+            if instance is not None:
+                self.take(instance, found)
+                failed.remove(segment)
+        return found
+
+    def take(self, instance: Instance, found: list[Instance]) -> None:
+        """``instance`` added to ``found``, its points out of the search."""
+        found.append(instance)
+        self.free[instance.claimed] = False
 
     def worth_searching(self, region: np.ndarray) -> bool:
         """Whether a region holds enough points, spread wide enough, to be a part: at least
@@ -307,7 +345,7 @@ class Scan:
             return False
         return radius(self.frame.points[region]) >= FRAGMENT * self.sizes[0]
 
-    def instance(self, region: np.ndarray) -> Instance | None:
+    def instance(self, region: np.ndarray, place: bool = True) -> Instance | None:
         """The chain's answer for the points ``region`` as an instance claiming the free
         points near its surface; else the likeliest parts' views placed over the region, and
         the chain asked about the points the best explains. None if neither explains enough."""
@@ -319,7 +357,7 @@ class Scan:
             found = self.claim(region, self.ask(self.another_sample(points), sigma), sigma)
         if found is not None:
             return found
-        if not self.may_hold_several(points, answer):
+        if not place or not self.may_hold_several(points, answer):
             return None
         spacing = self.spacing
         for entry in self.template_parts(points, spacing, answer):

@@ -140,6 +140,7 @@ THROUGH_DOUBT = 0.1  # an instance the camera saw through more than this is doub
 THROUGH_WEIGHT = 6.0  # a refined placed view: what the camera saw through counts this much
 DUPLICATE_GAP = 0.1  # two instances of a part this close (share of its scale) are one
 FRAGMENT = 0.3  # a region narrower than this share of the smallest part's scale is a fragment
+FRAGMENTS_ADD = 0.03  # a failed segment is searched again with the fragments by it adding this
 JOIN_SCALES = 1.2  # segments are joined only into a region no wider than this many scales ...
 MAX_JOINS = 6  # ... and only so many times a frame
 TEMPLATE_FIT = 0.8  # a region whose best part explains less of it may hold several ...

@@ -9,13 +9,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 
 from service.engine.confidence import Calibration
 from service.engine.engine import Engine
 from service.engine.mapping import Mapper
 from service.engine.sampling import sample_surface_faces
 from service.engine.scene import Instance, settle_claims
-from service.engine.tuning import SEGMENT_POINTS
+from service.engine.tuning import MIN_SEGMENT, SEGMENT_POINTS
 from service.settings import Settings
 from tests.frames import frame_of, resting, shoot, spin, table
 
@@ -234,3 +235,29 @@ def test_a_segment_nothing_was_found_in_is_asked_about_from_another_sample(engin
     assert len(first) == len(second) == SEGMENT_POINTS
     together = np.unique(np.concatenate([first, second]), axis=0)
     assert SEGMENT_POINTS < len(together) < 2 * SEGMENT_POINTS  # one segment, two samples
+
+
+def test_a_segment_nothing_was_found_in_is_asked_about_with_the_fragments_by_it(engine):
+    # a box whose left edge a gap in depth (two columns of missing pixels) cuts off: a strip
+    # too small to be searched alone, 4 % of the box's points. Nothing listed (a frame
+    # calibration that doubts everything), the chain is asked once more about the box's
+    # segment with the strip (docs/decisions.md#detect)
+    doubting = one_fit(bias=-50.0)
+    calibrated = Engine(engine.mapper, SETTINGS.engine, engine.calibration, doubting)
+    calibrated.load([engine.entry("box").reference])
+    mesh = trimesh.creation.box((0.08, 0.06, 0.04))
+    shot = shoot([(mesh, *resting(mesh, spin(25), 0.0, 0.0))], table(), distance=1.2)
+    rows, columns = np.nonzero(shot.shows == 0)
+    cut = columns.min() + 2
+    gap = (columns == cut) | (columns == cut + 1)
+    shot.points[rows[gap], columns[gap]] = np.nan
+    strip = shot.points[rows[columns < cut], columns[columns < cut]]
+    assert 0 < len(strip) < MIN_SEGMENT
+    calls = counting(calibrated)
+    assert calibrated.detect(frame_of(shot)).detections == []
+    strip = strip.astype(np.float64)
+
+    def share_of_strip(asked: np.ndarray) -> float:
+        return float(np.mean(cKDTree(asked).query(strip)[0] < 1e-6))
+
+    assert max(share_of_strip(c) for c in calls) > 0.9, [len(c) for c in calls]
