@@ -514,8 +514,11 @@ class Engine:
             return None
         shortlist = ranking.shortlist
         count = query.top_k or self.settings.view_candidates
+        more = 0 if query.top_k else self.settings.more_views  # ranked once for _more_views
         snapshot, allowed = query.snapshot, query.allowed
-        rows = self._nearest_views(snapshot, observed.grid, observed.size, allowed, count)
+        ranked = self._nearest_views(snapshot, observed.grid, observed.size, allowed, count + more)
+        observed.nearest_views = ranked
+        rows = ranked[:count]
         rows += [row for row in shortlist if row not in rows]
         query.clock.lap("classify")
         whole = ["principal-axes"] if "principal-axes" in query.sources else []
@@ -536,10 +539,8 @@ class Engine:
         if max((f.score for f in fits if f.refined), default=0.0) >= MORE_VIEWS_BELOW:
             return None
         searched = {f.row for f in fits}
-        rows = self._nearest_views(
-            query.snapshot, observed.grid, observed.size, query.allowed, first + more
-        )
-        rows = [row for row in rows[first:] if row not in searched]
+        ranked = observed.nearest_views  # by _single_views, which runs before
+        rows = [row for row in ranked[first : first + more] if row not in searched]
         if not rows:
             return None
         query.clock.lap("classify")
@@ -908,7 +909,7 @@ class Engine:
         brings it nearer the references' median scale, for an observation of a size some
         reference has: a gallery of parts in mixed units has a part of any cloud's size in
         some other unit (docs/decisions.md#units-of-a-poor-fit)."""
-        typical = float(np.median(scales)) if len(scales) else size
+        typical = float(np.median(scales)) if toward and len(scales) else size
         off = abs(np.log(max(size, 1e-12) / typical))
         for factor in UNIT_FACTORS:
             if toward and abs(np.log(max(size / factor, 1e-12) / typical)) >= off:

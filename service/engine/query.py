@@ -4,7 +4,7 @@ reading of the observation as steps 1-3 leave it, and step 4's ranking of the pa
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -60,6 +60,7 @@ class Observed:
     spacing: float  # the reading's median distance between neighbouring points
     mapped: np.ndarray | None = None  # (n, 2) their 2-D coordinates (2. map)
     grid: np.ndarray | None = None  # (64, 64) the grid of those (3. grid)
+    nearest_views: list[int] = field(default_factory=list)  # rows, by their views' likeness
 
 
 @dataclass(frozen=True)

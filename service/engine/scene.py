@@ -287,7 +287,9 @@ class Scan:
         small = np.flatnonzero((sizes > 0) & (sizes < MIN_SEGMENT))
         chosen = np.concatenate([np.asarray(failed, dtype=np.intp), small])
         near = adjacent(self.frame, labels, chosen, JOIN_PIXELS) if failed else set()
-        found += self.with_fragments(labels, sizes, failed, near, most - len(found))
+        found += self.with_fragments(
+            labels, sizes, failed, set(small.tolist()), near, most - len(found)
+        )
         joins = 0
         for a, b in sorted((a, b) for a, b in near if a in failed and b in failed):
             region = np.flatnonzero(((labels == a) | (labels == b)) & self.free)
@@ -305,13 +307,19 @@ class Scan:
         return found
 
     def with_fragments(
-        self, labels: np.ndarray, sizes: np.ndarray, failed: list[int], near: set, most: int
+        self,
+        labels: np.ndarray,
+        sizes: np.ndarray,
+        failed: list[int],
+        small: set[int],
+        near: set,
+        most: int,
     ) -> list[Instance]:
         """The segments where nothing was found, each searched once more with the fragments
-        next to it in the image (``near``; too small to be searched alone) where they add
-        ``FRAGMENTS_ADD`` of its points: a part's points that a jump in depth cut off
-        (docs/decisions.md#detect). A segment an instance is found in is no longer failed."""
-        small = set(np.flatnonzero((sizes > 0) & (sizes < MIN_SEGMENT)).tolist())
+        next to it in the image (the ``small`` segments, too small to be searched alone, that
+        ``near`` pairs with it) where they add ``FRAGMENTS_ADD`` of its points: a part's points
+        that a jump in depth cut off (docs/decisions.md#detect). A segment an instance is
+        found in is no longer failed."""
         pieces: dict[int, list[int]] = {}
         for a, b in near:
             if a in failed and b in small:
