@@ -163,6 +163,9 @@ class ServerSettings(BaseModel):
     # (docs/decisions.md#a-second-core); 0: all in the service's own process; default: one a
     # core this process may use, at most AUTO_ENGINE_PROCESSES, none on a single core
     engine_processes: int | None = Field(None, ge=0, le=64)
+    # a request that finds no other in the engine is answered in the service's own process:
+    # no hop to a worker (docs/decisions.md#a-second-core); false: every one to the workers
+    idle_in_process: bool = True
     log_level: Annotated[LogLevel, BeforeValidator(lower)] = "info"  # INFO reads as info
     log_format: Literal["json", "text"] = "json"  # json: one object a line
 

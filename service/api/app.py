@@ -146,7 +146,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     engine = startup.make_engine(settings, mapper)
     catalog = Catalog(engine, store, settings.gallery.max_references)
     app.state.catalog = catalog
-    app.state.processes = processes = EngineProcesses(engine, settings, settings.engine_processes)
+    app.state.processes = processes = EngineProcesses(catalog, settings, settings.engine_processes)
     limits = settings.limits
     app.state.limiter = limiter = Limiter(
         settings.align_slots, limits.queue_timeout_s, limits.request_timeout_s

@@ -6,8 +6,11 @@ processes, spawned once the gallery has loaded. Each worker holds its own model 
 own copy of the gallery, read from the store. Before every job it reads the store's version (one
 small query) and follows what changed, so an answer never trails a change the service has
 acknowledged. Until the workers are up, and while a pool that lost a worker is replaced, the job
-runs in this process as before: nothing is refused for it. Parsing, the time budget, the
-console's recent alignments and the metrics stay here (docs/decisions.md#a-second-core).
+runs in this process as before: nothing is refused for it. A job that finds no other in the
+engine runs here too (``server.idle_in_process``), after the same check of the store's version:
+one request at a time, as a cell sends them, pays no hop to a worker and back. Parsing, the time
+budget, the console's recent alignments and the metrics stay here
+(docs/decisions.md#a-second-core).
 """
 
 from __future__ import annotations
@@ -22,7 +25,6 @@ from typing import Any
 
 from service import memory
 from service.api import logs, startup
-from service.engine.engine import Engine
 from service.errors import StoreUnavailable
 from service.gallery.catalog import Catalog
 from service.settings import Settings
@@ -35,8 +37,8 @@ START_TIMEOUT_S = 600.0  # for the workers to load the model and the gallery
 class EngineProcesses:
     """``align`` and ``detect`` as the engine's, run in the worker processes once they are up."""
 
-    def __init__(self, engine: Engine, settings: Settings, count: int):
-        self.engine = engine  # this process's: the work until the workers are up
+    def __init__(self, catalog: Catalog, settings: Settings, count: int):
+        self.catalog = catalog  # this process's: the work until the workers are up, and alone
         self.settings = settings
         self.count = count
         self.jobs = 0  # jobs the workers answered (a metric)
@@ -44,6 +46,8 @@ class EngineProcesses:
         self._pool: ProcessPoolExecutor | None = None
         self._lock = threading.Lock()
         self._closed = False
+        self._running = 0  # jobs in the engine now, here or in the workers
+        self._seen: int | None = None  # the store's version this process's job last followed
 
     @property
     def ready(self) -> int:
@@ -95,15 +99,24 @@ class EngineProcesses:
 
     def _run(self, method: str, args: tuple, kwargs: dict):
         pool = self._pool
-        if pool is not None:
-            try:
-                result = pool.submit(_job, method, args, kwargs).result()
-            except BrokenProcessPool:  # a worker died (killed, out of memory): start again
-                self._replace(pool)
-            else:
-                self.jobs += 1
-                return result
-        return getattr(self.engine, method)(*args, **kwargs)
+        with self._lock:
+            alone = self._running == 0 and self.settings.server.idle_in_process
+            self._running += 1
+        try:
+            if pool is not None and not alone:
+                try:
+                    result = pool.submit(_job, method, args, kwargs).result()
+                except BrokenProcessPool:  # a worker died (killed, out of memory): start again
+                    self._replace(pool)
+                else:
+                    self.jobs += 1
+                    return result
+            if pool is not None:  # answered here while the workers are up: as current as theirs
+                self._seen = _follow(self.catalog, self._seen)
+            return getattr(self.catalog.engine, method)(*args, **kwargs)
+        finally:
+            with self._lock:
+                self._running -= 1
 
     def _replace(self, broken: ProcessPoolExecutor) -> None:
         """Drop a pool that lost a worker and start a new one in the background; until it is
@@ -147,14 +160,21 @@ def _pid() -> int:
 def _job(method: str, args: tuple, kwargs: dict):
     """The engine's ``method`` on the gallery as the store holds it now."""
     global _seen
-    try:
-        version = _catalog.store.version()
-        if version != _seen:
-            _catalog.sync()
-            _seen = version
-    except StoreUnavailable:  # nothing can change while it is down: answer on what is held,
-        log.warning("the gallery store cannot be reached; answering on the gallery held")
+    _seen = _follow(_catalog, _seen)
     return getattr(_catalog.engine, method)(*args, **kwargs)
+
+
+def _follow(catalog: Catalog, seen: int | None) -> int | None:
+    """The catalog brought up to the store's version if it moved since ``seen``; the version
+    followed. While the store is down nothing can change: the job answers on what is held."""
+    try:
+        version = catalog.store.version()
+        if version != seen:
+            catalog.sync()
+        return version
+    except StoreUnavailable:
+        log.warning("the gallery store cannot be reached; answering on the gallery held")
+        return seen
 
 
 def _watch_parent() -> None:

@@ -4,12 +4,17 @@
 The workers answer ``/align`` and ``/detect`` as the service's own engine would, follow every
 registration and removal the service has acknowledged before the next answer, send the
 engine's errors back as the same status codes, and a worker killed with SIGKILL costs no
-request: the service answers in its own process while new workers start."""
+request: the service answers in its own process while new workers start. By default a request
+that finds no other in the engine is answered in the service's own process, and those that
+come while it runs by the workers (``server.idle_in_process``); the workers' own tests turn
+that off, so that every request reaches them."""
 
 from __future__ import annotations
 
 import os
 import signal
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -89,6 +94,7 @@ def servers(tmp_path_factory):
         data / "service.log",
         model__gallery=str(data / "no-seed.npz"),
         server__engine_processes="2",
+        server__idle_in_process="false",
         server__log_level="warning",
     )
     alone = empty_server(tmp_path_factory.mktemp("alone"))
@@ -159,6 +165,43 @@ def test_a_killed_worker_costs_no_request(servers):
     eventually(lambda: assert_workers_up(pooled), 120, every_s=0.2)
     after = workers(pooled)
     assert len(after) == 2 and before[0] not in after
+
+
+def test_a_lone_request_is_answered_in_process_and_those_beside_it_by_the_workers(
+    tmp_path_factory,
+):
+    data = tmp_path_factory.mktemp("idle")
+    server = ProcessServer(
+        data / "data",
+        data / "service.log",
+        model__gallery=str(data / "no-seed.npz"),
+        server__engine_processes="1",
+        server__log_level="warning",
+    )
+    try:
+        eventually(lambda: gauge_is(server, "dpc_engine_processes", 1), 120, every_s=0.2)
+        register(server, "duck")
+        jobs = gauge(server, "dpc_engine_process_jobs")
+        for seed in range(2):  # one at a time: no hop to the worker
+            answer = align(server, posed("duck", 40 + seed))
+            assert answer.status_code == 200 and answer.json()["label"] == "duck", answer.text
+        assert gauge(server, "dpc_engine_process_jobs") == jobs
+        start = threading.Barrier(6)
+
+        def together(seed: int):
+            start.wait()
+            return align(server, posed("duck", 50 + seed))
+
+        with ThreadPoolExecutor(6) as pool:
+            answers = list(pool.map(together, range(6)))
+        assert all(a.status_code == 200 and a.json()["label"] == "duck" for a in answers)
+        assert gauge(server, "dpc_engine_process_jobs") > jobs  # the worker took the others
+    finally:
+        server.stop()
+
+
+def gauge_is(server, name: str, value: float) -> None:
+    assert gauge(server, name) == value
 
 
 @pytest.mark.parametrize(
