@@ -259,6 +259,9 @@ class Engine:
         so a refit costs the same whatever the gallery's size."""
         classifier = None
         self.refits += 1
+        # by name, as the store lists them: the order breaks ties among the parts, so the same
+        # gallery answers alike whatever order it was registered in, here or in a worker
+        entries = dict(sorted(entries.items()))
         if entries:
             classifier = LinearClassifier.fit(
                 list(entries),

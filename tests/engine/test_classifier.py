@@ -96,3 +96,25 @@ def test_the_engine_keeps_its_gram_through_many_changes():
     assert np.array_equal(
         engine._snapshot.gram, view_gram([engine._snapshot.entries["again"].view_features])
     )
+
+
+def test_the_same_gallery_is_held_alike_whatever_order_it_was_registered_in():
+    """The snapshot lists the parts by name, as the store loads them: the order breaks ties
+    among parts, so a worker that loaded the store and the service that registered the parts
+    one by one (new and replaced ones last) answer alike (docs/decisions.md#a-second-core)."""
+    rng = np.random.default_rng(3)
+    settings = EngineSettings(grid_blur=1.0)
+    template = Engine(Mapper(MODEL.path), settings).make_reference(
+        "template", rng.normal(size=(64, 3)).astype(np.float32)
+    )
+    views = {name: rng.random((3, GRID_SIZE, GRID_SIZE)).astype(np.float32) for name in "dbca"}
+    parts = {name: template.with_(name=name, view_grids=grids) for name, grids in views.items()}
+    loaded = Engine(Mapper(MODEL.path), settings)
+    loaded.load([parts[name] for name in sorted(parts)])
+    registered = Engine(Mapper(MODEL.path), settings)
+    registered.load([parts["d"], parts["b"]])
+    for name in ("c", "a", "d"):  # d replaced: it kept its place before
+        registered.add(parts[name])
+    assert registered.names() == loaded.names() == ["a", "b", "c", "d"]
+    assert registered._snapshot.classifier.labels == loaded._snapshot.classifier.labels
+    assert np.allclose(registered._snapshot.classifier.weights, loaded._snapshot.classifier.weights)
