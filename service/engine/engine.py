@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -69,6 +70,7 @@ from service.engine.tuning import (
     PER_PART,
     POOR_FIT,
     RIGHT_EITHER_WAY,
+    SEVERAL,
     THIN_PER_SCALE,
     VIEW_POINTS,
     WHOLE_REFINED,
@@ -801,7 +803,8 @@ class Engine:
     ) -> SceneAnswer:
         """Every instance of a registered part in a camera's ``frame``: the supports set
         aside, the rest split into segments, each searched by the chain until nothing more
-        fits; then one global check among the instances. ``floor``: the least confidence of
+        fits, and searched again for more of a part found several times; then one global
+        check among the instances. ``floor``: the least confidence of
         an instance (default ``INSTANCE_FLOOR``; the calibration collects them all with 0);
         ``deadline`` (``time.monotonic()``): no region is searched after it."""
         query = self.query(candidates, None, True, None, frame.viewpoint)
@@ -818,6 +821,7 @@ class Engine:
         clock.lap("segments")
         scan = self._scan(query, rest, thin, supports, scales, floor, min_confidence, deadline)
         instances = scan.instances(labels, max_instances)  # explain, take out, search again
+        instances += self._found_again(scan, instances, labels, max_instances)  # more of one
         clock.lap("instances")
         instances = settle_claims(instances, len(rest), KEEP_SHARE)  # one global check
         clock.lap("global check")
@@ -839,6 +843,24 @@ class Engine:
             (float(scales.min()), float(scales.max())),
             deadline,
         )
+
+    def _found_again(self, scan: Scan, found: list, labels: np.ndarray, most: int) -> list:
+        """More instances of the parts matched ``SEVERAL`` times or more in the frame, looked for
+        where nothing more was found, told only those parts: a frame that holds several of one
+        part (a bin) may hold more of it, touching them, that the search among every part
+        missed (docs/decisions.md#detect)."""
+        matched = Counter(i.answer.label for i in found if i.answer.verdict == "match")
+        several = sorted(label for label, count in matched.items() if count >= SEVERAL)
+        if not several or len(found) >= most or not scan.in_time():
+            return []
+        told = self.query(several, None, True, None, scan.query.viewpoint)
+        if len(told.allowed) == len(scan.query.allowed):  # told those alone already
+            return []
+        again = dataclasses.replace(scan, query=told)  # judged as a frame told its parts
+        again.free = scan.free  # what the first search took stays out
+        more = again.instances(labels, most - len(found))
+        scan.complete = again.complete
+        return more
 
     def _frame_scales(self, query: Query, frame: Frame) -> np.ndarray:
         """The scales of the references a part in this frame could be: those no larger than

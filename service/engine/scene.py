@@ -7,9 +7,10 @@ segments' too: a part cut in two by a jump in depth is one instance) are taken o
 is left of the segment is searched again, until nothing fits. Where the chain finds nothing in
 a segment, it may hold several parts touching: the likeliest parts' views are placed over it
 (``templates``) and the chain asked about the points the best placed view explains. Segments
-where nothing was found are then tried joined with a neighbour (a part cut in two). Last the
-global check: each claimed point goes to the instance whose surface is nearest it, and an
-instance left with too little of what it claimed is dropped.
+where nothing was found are then tried joined with a neighbour (a part cut in two). Where a
+part was found several times (a bin's), what is left is searched again for it alone
+(``Engine.detect``). Last the global check: each claimed point goes to the instance whose
+surface is nearest it, and an instance left with too little of what it claimed is dropped.
 
 An instance's confidence is the scene calibration's (``evidence``: the chain's confidence and
 what the frame's depth says of the pose), where one is fitted; else the chain's.

@@ -261,3 +261,42 @@ def test_a_segment_nothing_was_found_in_is_asked_about_with_the_fragments_by_it(
         return float(np.mean(cKDTree(asked).query(strip)[0] < 1e-6))
 
     assert max(share_of_strip(c) for c in calls) > 0.9, [len(c) for c in calls]
+
+
+def test_a_part_found_several_times_is_looked_for_again_told_it_alone(engine):
+    # two boxes and a ball nobody registered: the boxes are found, the ball's segment is not,
+    # and it is asked about once more told the box alone (not the far larger drum). With one
+    # box found, nothing is asked told the box alone (docs/decisions.md#detect)
+    drum = trimesh.creation.cylinder(0.3, 0.2)
+    points, faces = sample_surface_faces(drum, 2048, 0)
+    told = Engine(engine.mapper, SETTINGS.engine, engine.calibration)
+    drum = engine.make_reference("drum", points, mesh=drum, face_index=faces)
+    told.load([engine.entry("box").reference, drum])
+    box = trimesh.creation.box((0.08, 0.06, 0.04))
+    ball = trimesh.creation.icosphere(3, 0.035)
+    for boxes, asked_told in ((2, True), (1, False)):
+        placed = [
+            (box, *resting(box, spin(25 + 40 * k), 0.14 * k - 0.12, 0.08)) for k in range(boxes)
+        ]
+        shot = shoot([*placed, (ball, *resting(ball, spin(0), 0.05, -0.1))], table())
+        candidates = asked_candidates(told)
+        try:
+            found = told.detect(frame_of(shot)).detections
+        finally:
+            del told.align
+        assert [d.answer.label for d in found] == ["box"] * boxes
+        assert (["box"] in candidates) is asked_told, candidates
+
+
+def asked_candidates(engine: Engine) -> list[list[str]]:
+    """The candidates ``engine.align`` is asked about from now on (``Scan.ask`` names them;
+    the real one answers)."""
+    asked: list[list[str]] = []
+    align = engine.align
+
+    def spied(points, *args, **kwargs):
+        asked.append(list(args[0]))
+        return align(points, *args, **kwargs)
+
+    engine.align = spied
+    return asked
