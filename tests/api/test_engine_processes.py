@@ -88,15 +88,7 @@ def workers(server: ProcessServer) -> list[int]:
 @pytest.fixture(scope="module")
 def servers(tmp_path_factory):
     """Two workers, and the service's own process alone, each with the duck registered."""
-    data = tmp_path_factory.mktemp("processes")
-    pooled = ProcessServer(
-        data / "data",
-        data / "service.log",
-        model__gallery=str(data / "no-seed.npz"),
-        server__engine_processes="2",
-        server__idle_in_process="false",
-        server__log_level="warning",
-    )
+    pooled = pooled_server(tmp_path_factory.mktemp("processes"), 2, server__idle_in_process="false")
     alone = empty_server(tmp_path_factory.mktemp("alone"))
     try:
         eventually(lambda: assert_workers_up(pooled), 120, every_s=0.2)
@@ -108,9 +100,21 @@ def servers(tmp_path_factory):
         alone.stop()
 
 
-def assert_workers_up(server) -> None:
-    assert gauge(server, "dpc_engine_processes") == 2
-    assert gauge(server, "dpc_engine_processes_wanted") == 2
+def pooled_server(data: Path, processes: int, **settings: str) -> ProcessServer:
+    """``python -m service`` with ``processes`` engine workers and no seeded gallery."""
+    return ProcessServer(
+        data / "data",
+        data / "service.log",
+        model__gallery=str(data / "no-seed.npz"),
+        server__engine_processes=str(processes),
+        server__log_level="warning",
+        **settings,
+    )
+
+
+def assert_workers_up(server, count: int = 2) -> None:
+    assert gauge(server, "dpc_engine_processes") == count
+    assert gauge(server, "dpc_engine_processes_wanted") == count
 
 
 def test_the_workers_answer_as_the_services_own_process(servers):
@@ -170,16 +174,9 @@ def test_a_killed_worker_costs_no_request(servers):
 def test_a_lone_request_is_answered_in_process_and_those_beside_it_by_the_workers(
     tmp_path_factory,
 ):
-    data = tmp_path_factory.mktemp("idle")
-    server = ProcessServer(
-        data / "data",
-        data / "service.log",
-        model__gallery=str(data / "no-seed.npz"),
-        server__engine_processes="1",
-        server__log_level="warning",
-    )
+    server = pooled_server(tmp_path_factory.mktemp("idle"), 1)
     try:
-        eventually(lambda: gauge_is(server, "dpc_engine_processes", 1), 120, every_s=0.2)
+        eventually(lambda: assert_workers_up(server, 1), 120, every_s=0.2)
         register(server, "duck")
         jobs = gauge(server, "dpc_engine_process_jobs")
         for seed in range(2):  # one at a time: no hop to the worker
@@ -198,10 +195,6 @@ def test_a_lone_request_is_answered_in_process_and_those_beside_it_by_the_worker
         assert gauge(server, "dpc_engine_process_jobs") > jobs  # the worker took the others
     finally:
         server.stop()
-
-
-def gauge_is(server, name: str, value: float) -> None:
-    assert gauge(server, name) == value
 
 
 @pytest.mark.parametrize(

@@ -270,8 +270,8 @@ def test_a_part_found_several_times_is_looked_for_again_told_it_alone(engine):
     drum = trimesh.creation.cylinder(0.3, 0.2)
     points, faces = sample_surface_faces(drum, 2048, 0)
     told = Engine(engine.mapper, SETTINGS.engine, engine.calibration)
-    drum = engine.make_reference("drum", points, mesh=drum, face_index=faces)
-    told.load([engine.entry("box").reference, drum])
+    other = engine.make_reference("drum", points, mesh=drum, face_index=faces)
+    told.load([engine.entry("box").reference, other])
     box = trimesh.creation.box((0.08, 0.06, 0.04))
     ball = trimesh.creation.icosphere(3, 0.035)
     for boxes, asked_told in ((2, True), (1, False)):
