@@ -31,3 +31,66 @@ def organized(grid: np.ndarray, max_points: int, what: str) -> Cloud:
             "crop it, or send a region of interest"
         )
     return Cloud(flat[valid], valid.astype(np.int64), (height, width))
+
+
+CENTRE_SAMPLE = 1024  # pixels the camera's centre is solved on
+RAY_TOLERANCE_RAD = 1e-3  # every sampled point within this of its pixel's ray (99th percentile)
+DEGENERATE = 1e-6  # the next solution this close to the best: the pixels do not pin the centre
+AT_ORIGIN = 1e-4  # a centre this near the origin, in the points' ranges, is the origin
+
+
+def camera_centre(cloud: Cloud, rng: np.random.Generator | None = None) -> np.ndarray | None:
+    """Where the camera of an organized frame was, in the frame's own coordinates: the point
+    every pixel's ray passes through, or None where the points do not lie on a pinhole's rays
+    (not a camera's frame) or do not pin it down (a single plane). A camera driver's frame
+    gives the origin; the same frame carried into a robot's base frame gives the camera there.
+
+    Each point ``p`` lies on its pixel's ray: ``(p - c) x (M q) = 0`` with ``q = (u, v, 1)``
+    and ``M`` the camera's inverse intrinsics turned into the frame. Writing ``N = [c]x M``
+    makes it linear in ``M`` and ``N`` (``p x M q - N q = 0``), solved by SVD; ``c`` is then
+    the skew part of ``N M^-1`` (docs/decisions.md#the-camera-of-an-organized-frame)."""
+    if cloud.shape is None or cloud.index is None or len(cloud.points) < 32:
+        return None
+    rng = rng or np.random.default_rng(0)
+    pick = rng.choice(len(cloud.points), min(CENTRE_SAMPLE, len(cloud.points)), replace=False)
+    points = np.asarray(cloud.points[pick], np.float64)
+    rows, columns = np.divmod(cloud.index[pick], cloud.shape[1])
+    if np.ptp(rows) < 2 or np.ptp(columns) < 2:
+        return None
+    # conditioned: pixels and points centred and scaled to about one
+    pixels = np.stack([columns, rows], axis=1).astype(np.float64)
+    pixel_mean, pixel_scale = pixels.mean(axis=0), max(float(pixels.std()), 1e-12)
+    q = np.column_stack([(pixels - pixel_mean) / pixel_scale, np.ones(len(points))])
+    point_mean, point_scale = points.mean(axis=0), max(float(points.std()), 1e-12)
+    p = (points - point_mean) / point_scale
+    # p x (M q) - N q = 0: three rows a point, unknowns vec(M) then vec(N) (row-major)
+    cross = np.zeros((len(p), 3, 3))  # [p]x
+    cross[:, 0, 1], cross[:, 0, 2] = -p[:, 2], p[:, 1]
+    cross[:, 1, 0], cross[:, 1, 2] = p[:, 2], -p[:, 0]
+    cross[:, 2, 0], cross[:, 2, 1] = -p[:, 1], p[:, 0]
+    rows_m = np.einsum("nik,nj->nikj", cross, q).reshape(len(p), 3, 9)  # [p]x M q
+    rows_n = -np.einsum("ik,nj->nikj", np.eye(3), q).reshape(len(p), 3, 9)  # - N q
+    system = np.concatenate([rows_m, rows_n], axis=2).reshape(-1, 18)
+    _, singular, vt = np.linalg.svd(system, full_matrices=False)
+    if singular[-2] < DEGENERATE * singular[0] or singular[-1] > 1e-3 * singular[-2]:
+        return None  # a second solution (a plane), or none fits
+    m, n = vt[-1, :9].reshape(3, 3), vt[-1, 9:].reshape(3, 3)
+    if abs(np.linalg.det(m)) < 1e-12:
+        return None
+    skew = n @ np.linalg.inv(m)
+    centre = np.array([skew[2, 1] - skew[1, 2], skew[0, 2] - skew[2, 0], skew[1, 0] - skew[0, 1]])
+    centre /= 2
+    rays = q @ m.T
+    sight = p - centre
+    rays *= np.sign(np.median(np.einsum("ij,ij->i", rays, sight)))
+    cosine = np.einsum("ij,ij->i", rays, sight) / (
+        np.linalg.norm(rays, axis=1) * np.linalg.norm(sight, axis=1) + 1e-300
+    )
+    off = np.arccos(np.clip(cosine, -1.0, 1.0))
+    if np.quantile(off, 0.99) > RAY_TOLERANCE_RAD:
+        return None
+    centre = centre * point_scale + point_mean
+    # a driver's own frame: the origin itself, not its float32 rounding (a depth image is read
+    # only from a camera at the origin: projection.DepthImage)
+    near = AT_ORIGIN * float(np.median(np.linalg.norm(points, axis=1)))
+    return np.zeros(3) if np.linalg.norm(centre) <= near else centre

@@ -18,7 +18,7 @@ from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException
 
 from service.api import depth
-from service.api.clouds import Cloud
+from service.api.clouds import Cloud, camera_centre
 from service.api.parsers import read_upload
 from service.api.routes.common import invalid, known_fields, parse
 from service.api.schemas import DepthCamera
@@ -109,7 +109,9 @@ def form_points(form: Form, settings: Settings) -> tuple[np.ndarray, list[float]
 
 def form_cloud(form: Form, settings: Settings) -> tuple[Cloud, list[float] | None]:
     """The form's ``file`` as a checked cloud (float32 points, and an organized frame's
-    pixels), and the viewpoint the file implies: the origin for a depth image, else None."""
+    pixels), and the viewpoint the file implies: the origin for a depth image, the camera's
+    centre for an organized cloud whose pixels' rays pin it (``clouds.camera_centre``), else
+    None."""
     data, filename = form.files["file"]
     camera = {name: form.value(name) for name in CAMERA_FIELDS if name in form.fields}
     mask = form.files.get("mask")
@@ -126,7 +128,8 @@ def form_cloud(form: Form, settings: Settings) -> tuple[Cloud, list[float] | Non
     else:
         upload = read_upload(data, filename, settings.gallery.reference_points, limits.max_points)
         cloud = Cloud(upload.points, upload.index, upload.shape)
-        viewpoint = None
+        centre = camera_centre(cloud)  # an organized frame's camera, where its rays pin it
+        viewpoint = None if centre is None else [float(v) for v in centre]
     points = validate_points(cloud.points, limits.min_points, limits.max_points)
     return Cloud(points, cloud.index, cloud.shape), viewpoint
 

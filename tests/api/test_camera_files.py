@@ -215,3 +215,36 @@ def test_damaged_files_are_named(service, depth):
             assert answer.status_code == 422, (route, words, answer.text)
             assert words in answer.json()["detail"], (route, answer.json()["detail"])
     assert service.client.get("/alignments").json()["alignments"][:1] == before  # none recorded
+
+
+def organized_cloud(depth: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float32 camera-frame points of a depth image, NaN where it has no depth."""
+    grid = np.full((*depth.shape, 3), np.nan, dtype=np.float32)
+    grid[depth > 0] = unproject(depth)
+    return grid
+
+
+def implied_viewpoint(answer) -> np.ndarray | None:
+    returned(answer)
+    header = answer.headers.get("X-Viewpoint")
+    return None if header is None else np.array([float(v) for v in header.split(",")])
+
+
+def test_an_organized_cloud_implies_where_its_camera_was(service, depth):
+    # the points of a camera's pixels lie on rays through the camera: in the driver's frame the
+    # origin, carried into a robot's frame the camera there; a plane does not pin it, and a
+    # cloud without its pixels says nothing (docs/decisions.md#the-camera-of-an-organized-frame)
+    grid = organized_cloud(depth)
+    at_origin = implied_viewpoint(post_points(service, {"file": ("frame.npy", npy(grid))}))
+    assert at_origin.tolist() == [0.0, 0.0, 0.0]
+    turn = Rotation.from_euler("xyz", [10, 70, -40], degrees=True).as_matrix()
+    camera = np.array([0.3, -0.8, 1.1])
+    moved = (grid.reshape(-1, 3).astype(np.float64) @ turn.T + camera).astype(np.float32)
+    seen = implied_viewpoint(
+        post_points(service, {"file": ("frame.npy", npy(moved.reshape(grid.shape)))})
+    )
+    np.testing.assert_allclose(seen, camera, atol=1e-4)
+    wall = organized_cloud(np.full_like(depth, 0.5))  # one plane facing the camera
+    assert implied_viewpoint(post_points(service, {"file": ("wall.npy", npy(wall))})) is None
+    loose = grid.reshape(-1, 3)[np.isfinite(grid.reshape(-1, 3)).all(axis=1)]
+    assert implied_viewpoint(post_points(service, {"file": ("loose.npy", npy(loose))})) is None

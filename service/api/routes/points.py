@@ -44,7 +44,8 @@ BODY = {
     summary="Read a cloud, mesh or depth-image file into the points /align would use",
     responses=points_answer(
         "triples; `X-Points` is their count, `X-Viewpoint` (x,y,z) the viewpoint the file "
-        "implies (a depth image: 0,0,0), `X-Shape` (height,width) an organized frame's grid; "
+        "implies (a depth image: 0,0,0; an organized cloud: where its pixels' rays meet), "
+        "`X-Shape` (height,width) an organized frame's grid; "
         "with `pixels=true` and an `X-Shape`, the triples are followed by each point's pixel "
         "(row * width + col) as little-endian uint32"
     )
