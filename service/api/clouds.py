@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.engine.icp import cross_matrices
 from service.errors import InvalidPoints
 
 
@@ -39,7 +40,7 @@ DEGENERATE = 1e-6  # the next solution this close to the best: the pixels do not
 AT_ORIGIN = 1e-4  # a centre this near the origin, in the points' ranges, is the origin
 
 
-def camera_centre(cloud: Cloud, rng: np.random.Generator | None = None) -> np.ndarray | None:
+def camera_centre(cloud: Cloud) -> np.ndarray | None:
     """Where the camera of an organized frame was, in the frame's own coordinates: the point
     every pixel's ray passes through, or None where the points do not lie on a pinhole's rays
     (not a camera's frame) or do not pin it down (a single plane). A camera driver's frame
@@ -51,8 +52,8 @@ def camera_centre(cloud: Cloud, rng: np.random.Generator | None = None) -> np.nd
     the skew part of ``N M^-1`` (docs/decisions.md#the-camera-of-an-organized-frame)."""
     if cloud.shape is None or cloud.index is None or len(cloud.points) < 32:
         return None
-    rng = rng or np.random.default_rng(0)
-    pick = rng.choice(len(cloud.points), min(CENTRE_SAMPLE, len(cloud.points)), replace=False)
+    count = len(cloud.points)
+    pick = np.random.default_rng(0).choice(count, min(CENTRE_SAMPLE, count), replace=False)
     points = np.asarray(cloud.points[pick], np.float64)
     rows, columns = np.divmod(cloud.index[pick], cloud.shape[1])
     if np.ptp(rows) < 2 or np.ptp(columns) < 2:
@@ -64,11 +65,7 @@ def camera_centre(cloud: Cloud, rng: np.random.Generator | None = None) -> np.nd
     point_mean, point_scale = points.mean(axis=0), max(float(points.std()), 1e-12)
     p = (points - point_mean) / point_scale
     # p x (M q) - N q = 0: three rows a point, unknowns vec(M) then vec(N) (row-major)
-    cross = np.zeros((len(p), 3, 3))  # [p]x
-    cross[:, 0, 1], cross[:, 0, 2] = -p[:, 2], p[:, 1]
-    cross[:, 1, 0], cross[:, 1, 2] = p[:, 2], -p[:, 0]
-    cross[:, 2, 0], cross[:, 2, 1] = -p[:, 1], p[:, 0]
-    rows_m = np.einsum("nik,nj->nikj", cross, q).reshape(len(p), 3, 9)  # [p]x M q
+    rows_m = np.einsum("nik,nj->nikj", cross_matrices(p), q).reshape(len(p), 3, 9)  # [p]x M q
     rows_n = -np.einsum("ik,nj->nikj", np.eye(3), q).reshape(len(p), 3, 9)  # - N q
     system = np.concatenate([rows_m, rows_n], axis=2).reshape(-1, 18)
     _, singular, vt = np.linalg.svd(system, full_matrices=False)

@@ -856,8 +856,7 @@ class Engine:
         told = self.query(several, None, True, None, scan.query.viewpoint)
         if len(told.allowed) == len(scan.query.allowed):  # told those alone already
             return []
-        again = dataclasses.replace(scan, query=told)  # judged as a frame told its parts
-        again.free = scan.free  # what the first search took stays out
+        again = scan.narrowed(told)  # judged as a frame told its parts
         more = again.instances(labels, most - len(found))
         scan.complete = again.complete
         return more

@@ -343,9 +343,16 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
     angle = np.sqrt(np.einsum("hi,hi->h", w, w))
     k = w / np.where(angle < 1e-12, 1.0, angle)[:, None]  # no turn: k ~ 0, the identity
     cos, sin = np.cos(angle)[:, None, None], np.sin(angle)[:, None, None]
-    cross = np.zeros((len(w), 3, 3))
-    cross[:, CROSS_ROWS, CROSS_COLS] = k[:, CROSS_AXES] * CROSS_SIGNS
+    cross = cross_matrices(k)
     return cos * np.eye(3) + sin * cross + (1 - cos) * (k[:, :, None] * k[:, None, :])
+
+
+def cross_matrices(vectors: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) the cross-product matrix ``[v]x`` of each of ``vectors`` (N, 3):
+    ``[v]x u = v x u``."""
+    cross = np.zeros((len(vectors), 3, 3))
+    cross[:, CROSS_ROWS, CROSS_COLS] = vectors[:, CROSS_AXES] * CROSS_SIGNS
+    return cross
 
 
 def _jacobian(model: np.ndarray, normals: np.ndarray) -> np.ndarray:

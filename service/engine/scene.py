@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
@@ -256,6 +256,12 @@ class Scan:
     def told(self) -> bool:
         """Whether the request named the candidates, fewer than every registered part."""
         return len(self.query.allowed) < len(self.query.snapshot.classifier.labels)
+
+    def narrowed(self, query: Query) -> Scan:
+        """This search asking ``query`` (fewer parts) instead: what it took stays out."""
+        again = replace(self, query=query)
+        again.free = self.free
+        return again
 
     def in_time(self) -> bool:
         """Whether there is time to search one more region (else the search is incomplete)."""
