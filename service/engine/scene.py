@@ -3,10 +3,12 @@ segments, each with the points it explains, and one global check among them.
 
 A segment is searched as ``Engine.align`` searches a cloud; an answer that explains enough
 of it is an instance, its points (every point of the frame near its surface, the neighbouring
-segments' too: a part cut in two by a jump in depth is one instance) are taken out, and what
-is left of the segment is searched again, until nothing fits. Where the chain finds nothing in
-a segment, it may hold several parts touching: the likeliest parts' views are placed over it
-(``templates``) and the chain asked about the points the best placed view explains. Segments
+segments' too: a part cut in two by a jump in depth is one instance; and those another
+instance claimed that lie nearer its surface) are taken out, and what is left of the segment
+is searched again, piece by piece where it falls apart, until nothing fits. Where the chain
+finds nothing in a segment, it may hold several parts touching: the likeliest parts' views
+are placed over it (``templates``) and the chain asked about the points the best placed view
+explains. Segments
 where nothing was found are then tried joined with a neighbour (a part cut in two). Where a
 part was found several times (a bin's), what is left is searched again for it alone
 (``Engine.detect``). Last the global check: each claimed point goes to the instance whose
@@ -35,7 +37,7 @@ from service.engine.look_alikes import doubt
 from service.engine.normalize import radius, subsample
 from service.engine.projection import DepthImage
 from service.engine.query import Query, Stopwatch
-from service.engine.segments import adjacent
+from service.engine.segments import adjacent, cell_groups
 from service.engine.supports import Noise, Support
 from service.engine.templates import likeliest, place_views
 from service.engine.tuning import (
@@ -55,6 +57,7 @@ from service.engine.tuning import (
     MIN_EXPLAINED,
     MIN_SEGMENT,
     NOISE_TOLERANCES,
+    PIECE_CELLS,
     SEGMENT_POINTS,
     TEMPLATE_FIT,
     TEMPLATE_PARTS,
@@ -251,6 +254,8 @@ class Scan:
 
     def __post_init__(self):
         self.free = np.ones(len(self.frame), dtype=bool)
+        # how near the surface of the instance that claimed it each point lies (inf: free)
+        self.held = np.full(len(self.frame), np.inf)
 
     @property
     def told(self) -> bool:
@@ -260,7 +265,7 @@ class Scan:
     def narrowed(self, query: Query) -> Scan:
         """This search asking ``query`` (fewer parts) instead: what it took stays out."""
         again = replace(self, query=query)
-        again.free = self.free
+        again.free, again.held = self.free, self.held
         return again
 
     def in_time(self) -> bool:
@@ -271,25 +276,30 @@ class Scan:
 
     def instances(self, labels: np.ndarray, most: int) -> list[Instance]:
         """Each segment, largest first, searched until nothing more fits in it (``MAX_TRIES``
-        instances at most); then the segments where nothing was found, with the fragments by
-        them (``with_fragments``), then joined with a neighbour in the image."""
+        searches at most): once an instance is taken out, each piece of what is left
+        (``pieces``); then the segments where nothing was found, with the fragments by them
+        (``with_fragments``), then joined with a neighbour in the image."""
         found: list[Instance] = []
         sizes = np.bincount(labels) if len(labels) else np.zeros(0, int)
         failed = []
         for segment in np.argsort(-sizes, kind="stable"):
             if sizes[segment] < MIN_SEGMENT:
                 break
-            for tries in range(MAX_TRIES):
-                region = np.flatnonzero((labels == segment) & self.free)
-                if not self.worth_searching(region) or len(found) >= most:
-                    break
+            pending, tries = [np.flatnonzero(labels == segment)], 0
+            while pending and tries < MAX_TRIES and len(found) < most:
+                region = pending.pop(0)
+                region = region[self.free[region]]
+                if not self.worth_searching(region):
+                    continue
                 if not self.in_time():
                     return found
+                tries += 1
                 instance = self.instance(region)
                 if instance is None:
-                    failed += [segment] if tries == 0 else []
-                    break
+                    failed += [segment] if tries == 1 else []
+                    continue
                 self.take(instance, found)
+                pending = self.pieces(region[self.free[region]]) + pending
         # the failed segments' neighbours in the image: fragments, and other failed segments
         small = np.flatnonzero((sizes > 0) & (sizes < MIN_SEGMENT))
         chosen = np.concatenate([np.asarray(failed, dtype=np.intp), small])
@@ -348,10 +358,23 @@ class Scan:
                 failed.remove(segment)
         return found
 
+    def pieces(self, region: np.ndarray) -> list[np.ndarray]:
+        """What is left of a segment once an instance is taken out of it, in the pieces it
+        falls into (``PIECE_CELLS``), largest first; those too small to search left out. A
+        small part touching a large one is then searched without the large one's strays
+        beyond it (docs/decisions.md#detect)."""
+        if len(region) < MIN_SEGMENT:
+            return []
+        group = cell_groups(self.frame.points[region], PIECE_CELLS * self.spacing)
+        sizes = np.bincount(group)
+        order = np.argsort(-sizes, kind="stable")
+        return [region[group == g] for g in order if sizes[g] >= MIN_SEGMENT]
+
     def take(self, instance: Instance, found: list[Instance]) -> None:
         """``instance`` added to ``found``, its points out of the search."""
         found.append(instance)
         self.free[instance.claimed] = False
+        self.held[instance.claimed] = np.minimum(self.held[instance.claimed], instance.distance)
 
     def worth_searching(self, region: np.ndarray) -> bool:
         """Whether a region holds enough points, spread wide enough, to be a part: at least
@@ -475,21 +498,14 @@ class Scan:
             return None
         entry = self.query.snapshot.entries[answer.label]
         tolerance = CLAIM_TOLERANCE * self.part_tolerance(entry, sigma)
-        available = np.flatnonzero(self.free)
-        close, distance = near_surface(
-            self.frame.points[available], entry, answer.rotation, answer.translation, tolerance
-        )
-        claimed = available[close]
+        claimed, distance = self.claimable(entry, answer, tolerance)
         in_region = np.zeros(len(self.frame), dtype=bool)
         in_region[region] = True
         if in_region[claimed].sum() < MIN_EXPLAINED:
             return None
         # the pose finished on every point it claims: the chain saw a sample of a region
         self.finish(answer, entry, self.frame.points[claimed], tolerance / CLAIM_TOLERANCE)
-        close, distance = near_surface(
-            self.frame.points[available], entry, answer.rotation, answer.translation, tolerance
-        )
-        claimed = available[close]
+        claimed, distance = self.claimable(entry, answer, tolerance)
         inside = int(in_region[claimed].sum())
         if inside < MIN_EXPLAINED:
             return None
@@ -504,6 +520,19 @@ class Scan:
         if (instance.answer.confidence or 0.0) < self.floor:
             return None
         return instance
+
+    def claimable(
+        self, entry: Entry, answer: Alignment, tolerance: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The points within ``tolerance`` of the part's surface at the answer's pose that it
+        may claim, and their distances: the free ones, and those an instance claimed before
+        that lie nearer this surface than that one's (a large part's claim reaches over a
+        small part touching it; docs/decisions.md#detect)."""
+        close, distance = near_surface(
+            self.frame.points, entry, answer.rotation, answer.translation, tolerance
+        )
+        mine = self.free[close] | (distance < self.held[close])
+        return close[mine], distance[mine]
 
     def asked_again(self, region: np.ndarray, instance: Instance, sigma: float) -> Instance:
         """A posed instance the frame does not confirm, with the chain asked once more about

@@ -117,6 +117,7 @@ MIN_EXPLAINED = 40  # an instance explains at least this many of its segment's p
 MATCH_POINTS = 150  # ... and a "match" this many (fewer were right 8 times in 244)
 CHAIN_AGREES = 0.5  # ... and the chain's own confidence for its points at least this
 MAX_TRIES = 4  # instances looked for in one segment, at most
+PIECE_CELLS = 4  # what is left of a segment is searched in pieces: cells this many spacings wide
 SEVERAL = 2  # a part matched this often in a frame is looked for again, told it alone
 CLAIM_TOLERANCE = 1.5  # an instance claims the points within this many tolerances of it
 KEEP_SHARE = 0.5  # an instance left with less of its claim after the global check goes

@@ -17,6 +17,7 @@ from service.engine.normalize import normalize, radius
 from service.engine.normals import estimate_normals
 from service.engine.principal_axes import Frame, principal_frame
 from service.engine.registration import kabsch, paper_least_squares, ransac
+from service.engine.segments import cell_groups
 
 
 def random_pose(seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -156,3 +157,12 @@ def test_an_answered_rotation_is_orthonormal_to_double_precision():
     fixed = orthonormal(drifted)
     np.testing.assert_allclose(fixed @ fixed.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(fixed) > 0 and np.abs(fixed - rotation).max() < 1e-5
+
+
+def test_cell_groups_join_what_lies_within_a_cell_and_part_what_lies_far_apart():
+    line = np.c_[np.arange(0, 0.1, 0.004), np.zeros(25), np.zeros(25)]  # 4 mm apart
+    far = line + [0.2, 0.0, 0.0]  # 10 cm beyond its end
+    labels = cell_groups(np.r_[line, far], 0.005)
+    assert len(set(labels[:25])) == len(set(labels[25:])) == 1
+    assert labels[0] != labels[25]
+    assert len(set(cell_groups(line, 0.001))) == 25  # 4 mm apart: beyond 2 sqrt(3) mm cells

@@ -300,3 +300,65 @@ def asked_candidates(engine: Engine) -> list[list[str]]:
 
     engine.align = spied
     return asked
+
+
+@pytest.fixture(scope="module")
+def box_and_cube(engine) -> tuple[Engine, dict[str, trimesh.Trimesh]]:
+    """An engine judged by the shipped detections' calibration, holding a box 16 cm long and
+    a cube of 3 cm; and their meshes, with a ball nobody registered."""
+    meshes = {
+        "box": trimesh.creation.box((0.16, 0.12, 0.06)),
+        "cube": trimesh.creation.box((0.03, 0.025, 0.02)),
+    }
+    calibrated = Engine(
+        engine.mapper,
+        SETTINGS.engine,
+        engine.calibration,
+        Calibration.load(SETTINGS.detect_confidence_path),
+    )
+    references = []
+    for name, mesh in meshes.items():
+        points, faces = sample_surface_faces(mesh, 2048, 0)
+        references.append(engine.make_reference(name, points, mesh=mesh, face_index=faces))
+    calibrated.load(references)
+    return calibrated, meshes | {"ball": trimesh.creation.icosphere(3, 0.02)}
+
+
+def cube_beside_the_box(meshes, turn: float, distance: float):
+    """The cube touching the box's end, the ball touching its other end."""
+    box, cube, ball = meshes["box"], meshes["cube"], meshes["ball"]
+    placed = [
+        (box, *resting(box, spin(turn), 0.0, 0.0)),
+        (cube, *resting(cube, spin(turn + 20), 0.095, 0.0)),
+        (ball, *resting(ball, spin(0), -0.105, 0.02)),
+    ]
+    return shoot(placed, table(), distance=distance)
+
+
+def the_cube(shot, detections) -> tuple[object, float]:
+    """The cube's detection, and the share of its points that show the cube."""
+    (cube,) = [d for d in detections if d.answer.label == "cube" and d.answer.verdict == "match"]
+    return cube.answer, float(np.mean(shot.shows.reshape(-1)[cube.indices] == 1))
+
+
+def test_what_is_left_of_a_segment_is_searched_piece_by_piece(box_and_cube):
+    # the box, the cube and the ball touch: one segment. Once the box is taken out, the cube
+    # and the ball lie apart, and the cube is searched without the ball (together, the chain
+    # found neither; docs/decisions.md#detect)
+    engine, meshes = box_and_cube
+    shot = cube_beside_the_box(meshes, 0.0, 0.7)
+    found = engine.detect(frame_of(shot)).detections
+    assert [d.answer.label for d in found if d.answer.verdict == "match"].count("box") == 1
+    _, share = the_cube(shot, found)
+    assert share > 0.95
+
+
+def test_a_small_part_claims_its_points_that_a_large_one_took(box_and_cube):
+    # farther off, the cube shows fewer points, and the box's claim (1.5 tolerances of its
+    # size) reaches over the cube's near side: the cube takes back those nearer its own surface
+    # and has the points a match needs (MATCH_POINTS)
+    engine, meshes = box_and_cube
+    shot = cube_beside_the_box(meshes, 30.0, 1.0)
+    answer, share = the_cube(shot, engine.detect(frame_of(shot)).detections)
+    assert share > 0.95
+    assert not any("points" in reason for reason in answer.reasons), answer.reasons
