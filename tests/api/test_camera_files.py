@@ -15,6 +15,7 @@ from pypcd4 import Encoding, PointCloud
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from service.api import uploads
 from service.api.depth import depth_points
 from service.api.schemas import DepthCamera
 from service.engine.sampling import sample_surface
@@ -248,3 +249,25 @@ def test_an_organized_cloud_implies_where_its_camera_was(service, depth):
     assert implied_viewpoint(post_points(service, {"file": ("wall.npy", npy(wall))})) is None
     loose = grid.reshape(-1, 3)[np.isfinite(grid.reshape(-1, 3)).all(axis=1)]
     assert implied_viewpoint(post_points(service, {"file": ("loose.npy", npy(loose))})) is None
+
+
+def test_a_viewpoint_the_request_gives_is_not_solved_for(service, depth, monkeypatch):
+    # the camera's centre is solved from an organized file's pixels only where the request
+    # does not say where the camera was (the solve reads 1,024 pixels' rays)
+    solved = []
+    solve = uploads.camera_centre
+
+    def counted(cloud):
+        solved.append(len(cloud.points))
+        return solve(cloud)
+
+    monkeypatch.setattr(uploads, "camera_centre", counted)
+    files = {"file": ("frame.npy", npy(organized_cloud(depth)))}
+    for route in ("/align", "/detect"):
+        given = service.client.post(route, files=files, data={"viewpoint": "0,0,0"})
+        assert given.status_code == 200, given.text
+        assert solved == [], route
+        implied = service.client.post(route, files=files)
+        assert implied.status_code == 200, implied.text
+        assert len(solved) == 1, route
+        solved.clear()

@@ -107,8 +107,8 @@ def _align(
     limits = settings.limits
     if isinstance(body, Form):
         source = f"file {body.files['file'][1] or ''}".strip()
-        points, implied = form_points(body, settings)
         options = parse(AlignOptions, {**query, **form_options(body)})
+        points, implied = form_points(body, settings, imply=options.viewpoint is None)
         if options.viewpoint is None and implied is not None:
             options.viewpoint = implied
     elif kind == RAW:

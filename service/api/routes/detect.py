@@ -113,9 +113,9 @@ def _detect(
     limits = settings.limits
     index, shape, implied = None, None, None
     if isinstance(body, Form):
-        cloud, implied = form_cloud(body, settings)
-        points, index, shape = cloud.points, cloud.index, cloud.shape
         options = parse(DetectOptions, {**query, **form_options(body)})
+        cloud, implied = form_cloud(body, settings, imply=options.viewpoint is None)
+        points, index, shape = cloud.points, cloud.index, cloud.shape
     elif kind == RAW:
         options = parse(DetectOptions, query)
         points = points_from_raw(body, limits.min_points, limits.max_points)
