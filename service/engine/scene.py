@@ -3,16 +3,15 @@ segments, each with the points it explains, and one global check among them.
 
 A segment is searched as ``Engine.align`` searches a cloud; an answer that explains enough
 of it is an instance, its points (every point of the frame near its surface, the neighbouring
-segments' too: a part cut in two by a jump in depth is one instance; and those another
-instance claimed that lie nearer its surface) are taken out, and what is left of the segment
-is searched again, piece by piece where it falls apart, until nothing fits. Where the chain
-finds nothing in a segment, it may hold several parts touching: the likeliest parts' views
-are placed over it (``templates``) and the chain asked about the points the best placed view
-explains. Segments
-where nothing was found are then tried joined with a neighbour (a part cut in two). Where a
-part was found several times (a bin's), what is left is searched again for it alone
-(``Engine.detect``). Last the global check: each claimed point goes to the instance whose
-surface is nearest it, and an instance left with too little of what it claimed is dropped.
+segments' too: a part cut in two by a jump in depth is one instance) are taken out, and what
+is left of the segment is searched again, piece by piece where it falls apart, until nothing
+fits. Where the chain finds nothing in a segment, it may hold several parts touching: the
+likeliest parts' views are placed over it (``templates``) and the chain asked about the points
+the best placed view explains. Segments where nothing was found are then tried joined with a
+neighbour (a part cut in two). Where a part was found several times (a bin's), what is left is
+searched again for it alone (``Engine.detect``). Last the global check: each claimed point goes
+to the instance whose surface is nearest it, and an instance left with too little of what it
+claimed is dropped.
 
 An instance's confidence is the scene calibration's (``evidence``: the chain's confidence and
 what the frame's depth says of the pose), where one is fitted; else the chain's.
@@ -254,8 +253,6 @@ class Scan:
 
     def __post_init__(self):
         self.free = np.ones(len(self.frame), dtype=bool)
-        # how near the surface of the instance that claimed it each point lies (inf: free)
-        self.held = np.full(len(self.frame), np.inf)
 
     @property
     def told(self) -> bool:
@@ -265,7 +262,7 @@ class Scan:
     def narrowed(self, query: Query) -> Scan:
         """This search asking ``query`` (fewer parts) instead: what it took stays out."""
         again = replace(self, query=query)
-        again.free, again.held = self.free, self.held
+        again.free = self.free
         return again
 
     def in_time(self) -> bool:
@@ -374,7 +371,6 @@ class Scan:
         """``instance`` added to ``found``, its points out of the search."""
         found.append(instance)
         self.free[instance.claimed] = False
-        self.held[instance.claimed] = np.minimum(self.held[instance.claimed], instance.distance)
 
     def worth_searching(self, region: np.ndarray) -> bool:
         """Whether a region holds enough points, spread wide enough, to be a part: at least
@@ -498,14 +494,21 @@ class Scan:
             return None
         entry = self.query.snapshot.entries[answer.label]
         tolerance = CLAIM_TOLERANCE * self.part_tolerance(entry, sigma)
-        claimed, distance = self.claimable(entry, answer, tolerance)
+        available = np.flatnonzero(self.free)
+        close, distance = near_surface(
+            self.frame.points[available], entry, answer.rotation, answer.translation, tolerance
+        )
+        claimed = available[close]
         in_region = np.zeros(len(self.frame), dtype=bool)
         in_region[region] = True
         if in_region[claimed].sum() < MIN_EXPLAINED:
             return None
         # the pose finished on every point it claims: the chain saw a sample of a region
         self.finish(answer, entry, self.frame.points[claimed], tolerance / CLAIM_TOLERANCE)
-        claimed, distance = self.claimable(entry, answer, tolerance)
+        close, distance = near_surface(
+            self.frame.points[available], entry, answer.rotation, answer.translation, tolerance
+        )
+        claimed = available[close]
         inside = int(in_region[claimed].sum())
         if inside < MIN_EXPLAINED:
             return None
@@ -520,19 +523,6 @@ class Scan:
         if (instance.answer.confidence or 0.0) < self.floor:
             return None
         return instance
-
-    def claimable(
-        self, entry: Entry, answer: Alignment, tolerance: float
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """The points within ``tolerance`` of the part's surface at the answer's pose that it
-        may claim, and their distances: the free ones, and those an instance claimed before
-        that lie nearer this surface than that one's (a large part's claim reaches over a
-        small part touching it; docs/decisions.md#detect)."""
-        close, distance = near_surface(
-            self.frame.points, entry, answer.rotation, answer.translation, tolerance
-        )
-        mine = self.free[close] | (distance < self.held[close])
-        return close[mine], distance[mine]
 
     def asked_again(self, region: np.ndarray, instance: Instance, sigma: float) -> Instance:
         """A posed instance the frame does not confirm, with the chain asked once more about
