@@ -10,7 +10,6 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from service.engine.frame import Frame
 from service.engine.surroundings import groups
@@ -94,8 +93,7 @@ def cell_groups(points: np.ndarray, cell: float) -> np.ndarray:
         return np.zeros(0, dtype=np.intp)
     keys = np.floor((points - points.min(axis=0)) / cell).astype(np.int64)
     cells, of_point = np.unique(keys, axis=0, return_inverse=True)
-    pairs = cKDTree(cells).query_pairs(1.75, output_type="ndarray")  # sqrt(3): the corners
-    return components(len(cells), pairs[:, 0], pairs[:, 1])[of_point.ravel()]
+    return groups(cells.astype(np.float64), 1.75)[of_point.ravel()]  # sqrt(3): the corners
 
 
 def adjacent(frame: Frame, labels: np.ndarray, chosen: np.ndarray, reach: int) -> set[tuple]:
