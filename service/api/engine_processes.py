@@ -19,7 +19,8 @@ import logging
 import multiprocessing
 import os
 import threading
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
@@ -113,10 +114,28 @@ class EngineProcesses:
                     return result
             if pool is not None:  # answered here while the workers are up: as current as theirs
                 self._seen = _follow(self.catalog, self._seen)
+                if method == "detect":  # the idle workers answer its segments' first asks
+                    kwargs = {**kwargs, "submit": self._submitter(pool)}
             return getattr(self.catalog.engine, method)(*args, **kwargs)
         finally:
             with self._lock:
                 self._running -= 1
+
+    def _submitter(self, pool: ProcessPoolExecutor) -> Callable[..., Future]:
+        """``Engine.align`` in the workers, answering a future: ``Engine.detect``'s
+        ``submit`` (docs/decisions.md#detect-on-two-cores)."""
+
+        def submit(*args: Any, **kwargs: Any) -> Future:
+            future = pool.submit(_job, "align", args, kwargs)
+            future.add_done_callback(self._answered)
+            return future
+
+        return submit
+
+    def _answered(self, future: Future) -> None:
+        if not future.cancelled() and future.exception() is None:
+            with self._lock:
+                self.jobs += 1
 
     def _replace(self, broken: ProcessPoolExecutor) -> None:
         """Drop a pool that lost a worker and start a new one in the background; until it is

@@ -24,7 +24,8 @@ from __future__ import annotations
 import dataclasses
 import threading
 from collections import Counter
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 import trimesh
@@ -800,13 +801,15 @@ class Engine:
         min_confidence: float | None = None,
         floor: float | None = None,
         deadline: float | None = None,
+        submit: Callable[..., Future] | None = None,
     ) -> SceneAnswer:
         """Every instance of a registered part in a camera's ``frame``: the supports set
         aside, the rest split into segments, each searched by the chain until nothing more
         fits, and searched again for more of a part found several times; then one global
         check among the instances. ``floor``: the least confidence of
         an instance (default ``INSTANCE_FLOOR``; the calibration collects them all with 0);
-        ``deadline`` (``time.monotonic()``): no region is searched after it."""
+        ``deadline`` (``time.monotonic()``): no region is searched after it; ``submit``:
+        ``align`` in another process, answering a future (``Scan.ask_ahead``)."""
         query = self.query(candidates, None, True, None, frame.viewpoint)
         clock = Stopwatch()
         frame = frame if roi is None else frame.cropped(*roi)
@@ -820,8 +823,12 @@ class Engine:
         labels = segments(rest, angle)  # segments
         clock.lap("segments")
         scan = self._scan(query, rest, thin, supports, scales, floor, min_confidence, deadline)
-        instances = scan.instances(labels, max_instances)  # explain, take out, search again
-        instances += self._found_again(scan, instances, labels, max_instances)  # more of one
+        scan.submit = submit
+        try:
+            instances = scan.instances(labels, max_instances)  # explain, take out, search again
+            instances += self._found_again(scan, instances, labels, max_instances)  # more of one
+        finally:
+            scan.settle()
         clock.lap("instances")
         instances = settle_claims(instances, len(rest), KEEP_SHARE)  # one global check
         clock.lap("global check")
@@ -857,7 +864,10 @@ class Engine:
         if len(told.allowed) == len(scan.query.allowed):  # told those alone already
             return []
         again = scan.narrowed(told)  # judged as a frame told its parts
-        more = again.instances(labels, most - len(found))
+        try:
+            more = again.instances(labels, most - len(found))
+        finally:
+            again.settle()
         scan.complete = again.complete
         return more
 

@@ -19,8 +19,10 @@ what the frame's depth says of the pose), where one is fitted; else the chain's.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
@@ -66,6 +68,8 @@ from service.engine.tuning import (
     WIDER,
 )
 from service.engine.verification import surface_distance
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -248,11 +252,16 @@ class Scan:
     min_confidence: float | None
     sizes: tuple[float, float]  # the smallest and largest scale a part here may have
     deadline: float | None = None  # time.monotonic() by which the search stops
+    # ``Engine.align`` run elsewhere (another process), answering a future: the segments'
+    # first asks are sent there at once (docs/decisions.md#detect-on-two-cores)
+    submit: Callable[..., Future] | None = None
     free: np.ndarray = field(init=False)  # which points no instance has claimed yet
     complete: bool = field(init=False, default=True)  # every region was searched in time
+    asked: dict[tuple, tuple[np.ndarray, Future]] = field(init=False)  # sent ahead
 
     def __post_init__(self):
         self.free = np.ones(len(self.frame), dtype=bool)
+        self.asked = {}
 
     @property
     def told(self) -> bool:
@@ -279,9 +288,9 @@ class Scan:
         found: list[Instance] = []
         sizes = np.bincount(labels) if len(labels) else np.zeros(0, int)
         failed = []
-        for segment in np.argsort(-sizes, kind="stable"):
-            if sizes[segment] < MIN_SEGMENT:
-                break
+        order = [s for s in np.argsort(-sizes, kind="stable") if sizes[s] >= MIN_SEGMENT]
+        self.ask_ahead([np.flatnonzero(labels == segment) for segment in order])
+        for segment in order:
             pending, tries = [np.flatnonzero(labels == segment)], 0
             while pending and tries < MAX_TRIES and len(found) < most:
                 region = pending.pop(0)
@@ -296,7 +305,9 @@ class Scan:
                     failed += [segment] if tries == 1 else []
                     continue
                 self.take(instance, found)
-                pending = self.pieces(region[self.free[region]]) + pending
+                pieces = self.pieces(region[self.free[region]])
+                self.ask_ahead(pieces[: MAX_TRIES - tries])
+                pending = pieces + pending
         # the failed segments' neighbours in the image: fragments, and other failed segments
         small = np.flatnonzero((sizes > 0) & (sizes < MIN_SEGMENT))
         chosen = np.concatenate([np.asarray(failed, dtype=np.intp), small])
@@ -426,9 +437,58 @@ class Scan:
         return answer.fit < TEMPLATE_FIT or radius(points) > WIDER * scale
 
     def answer_for(self, points: np.ndarray, sigma: float) -> Alignment:
-        """The chain's answer for a segment's points (``SEGMENT_POINTS`` of them at most),
-        nothing set aside."""
+        """The chain's answer for a segment's points (``SEGMENT_POINTS`` of them at most, drawn
+        by the search's generator), nothing set aside."""
         return self.ask(points[subsample(points, SEGMENT_POINTS, self.query.rng)], sigma)
+
+    def ask_ahead(self, regions: list[np.ndarray]) -> None:
+        """The chain's first ask about each region of at most ``SEGMENT_POINTS`` points (asked
+        about them all, as ``instance`` will ask: no draw) sent to ``submit`` at once, so that
+        another process answers them while this one claims and judges. A larger region's ask
+        is about a sample the search draws when it gets there, and stays here, so that the
+        answers are those of a search alone (docs/decisions.md#detect-on-two-cores). An ask
+        no longer made (its region shrank) is cancelled by ``settle``."""
+        if self.submit is None:
+            return
+        for region in regions:
+            region = region[self.free[region]]
+            if len(region) <= SEGMENT_POINTS and self.worth_searching(region):
+                points = self.frame.points[region]
+                self.send(points, self.noise.at(points, self.frame.viewpoint))
+
+    def send(self, sample: np.ndarray, sigma: float) -> None:
+        """The chain's ask about ``sample`` sent to ``submit``, kept in ``asked``."""
+        if self.submit is None:
+            return
+        try:
+            candidates, kwargs = self.asking(sigma)
+            future = self.submit(sample, candidates, **kwargs)
+        except Exception:  # the other process is gone (a broken pool): all asked here
+            log.warning("asks cannot be sent ahead; asking here", exc_info=True)
+            self.submit = None
+            return
+        self.asked[self.ask_key(sample, sigma)] = (sample, future)
+
+    def settle(self) -> None:
+        """The asks sent ahead that no region needed, cancelled (or left to finish)."""
+        for _, future in self.asked.values():
+            future.cancel()
+        self.asked.clear()
+
+    def ask_key(self, points: np.ndarray, sigma: float) -> tuple:
+        """What an ask asks, as a key of ``asked`` (its points compared on a hit)."""
+        return (len(points), hash(points.tobytes()), sigma, tuple(self.query.allowed))
+
+    def asking(self, sigma: float) -> tuple[list[str], dict]:
+        """``Engine.align``'s arguments for a region's points, but the points: the
+        candidates, and the rest by name."""
+        labels = self.query.snapshot.classifier.labels
+        return [labels[row] for row in self.query.allowed], {
+            "viewpoint": self.frame.viewpoint,
+            "min_confidence": self.min_confidence,
+            "surroundings": False,
+            "noise": sigma,
+        }
 
     @staticmethod
     def another_sample(points: np.ndarray) -> np.ndarray:
@@ -437,16 +497,18 @@ class Scan:
         return points[subsample(points, SEGMENT_POINTS, np.random.default_rng(len(points)))]
 
     def ask(self, points: np.ndarray, sigma: float = 0.0) -> Alignment:
-        """The chain's answer for ``points``, nothing set aside."""
-        labels = self.query.snapshot.classifier.labels
-        return self.align(
-            points,
-            [labels[row] for row in self.query.allowed],
-            viewpoint=self.frame.viewpoint,
-            min_confidence=self.min_confidence,
-            surroundings=False,
-            noise=sigma,
-        )
+        """The chain's answer for ``points``, nothing set aside: asked ahead, or here."""
+        sent, ahead = self.asked.pop(self.ask_key(points, sigma), (None, None))
+        if ahead is not None and np.array_equal(sent, points):
+            try:
+                answer = ahead.result()
+            except Exception:  # the other process failed it (a worker died): asked here
+                log.warning("an ask sent ahead failed; asking here", exc_info=True)
+            else:  # a part registered or removed meanwhile is not this snapshot's: asked here
+                if answer.label in self.query.snapshot.entries:
+                    return answer
+        candidates, kwargs = self.asking(sigma)
+        return self.align(points, candidates, **kwargs)
 
     def template_parts(self, points: np.ndarray, spacing: float, answer: Alignment) -> list[Entry]:
         """The parts to place over a segment: of those that fit inside it and are not far

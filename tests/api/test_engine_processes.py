@@ -183,6 +183,22 @@ def test_a_lone_request_is_answered_in_process_and_those_beside_it_by_the_worker
             answer = align(server, posed("duck", 40 + seed))
             assert answer.status_code == 200 and answer.json()["label"] == "duck", answer.text
         assert gauge(server, "dpc_engine_process_jobs") == jobs
+        # a lone frame is searched here, the first asks of its segments sent to the worker
+        answer = server.client.post(
+            "/detect",
+            content=posed("duck", 3).tobytes(),
+            headers=RAW,
+            params={"viewpoint": "0,0,-2"},
+        )
+        assert answer.status_code == 200, answer.text[:300]
+        assert [d["label"] for d in answer.json()["detections"]] == ["duck"]
+
+        def asked_ahead() -> float:
+            answered = gauge(server, "dpc_engine_process_jobs")
+            assert answered > jobs
+            return answered
+
+        jobs = eventually(asked_ahead, 10, every_s=0.1)
         start = threading.Barrier(6)
 
         def together(seed: int):

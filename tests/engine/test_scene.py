@@ -4,6 +4,7 @@ duplicates it drops, and the search's deadline."""
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -352,3 +353,37 @@ def test_what_is_left_of_a_segment_is_searched_piece_by_piece(box_and_cube):
         matched = [d.answer.label for d in found if d.answer.verdict == "match"]
         assert matched.count("box") == 1, matched
         assert cube_share(shot, found) > 0.95
+
+
+def test_asks_sent_ahead_to_another_process_answer_as_those_made_here(box_and_cube):
+    # ``submit`` runs the chain elsewhere (here a thread of the real engine; the service's
+    # worker processes): the segments' and their pieces' first asks are sent there at once,
+    # and the frame's answer is the one asked here alone (docs/decisions.md#detect-on-two-cores)
+    engine, meshes = box_and_cube
+    frame = frame_of(cube_beside_the_box(meshes, 0.0, 0.7))
+    align, sent = engine.align, []
+    asked = counting(engine)
+    try:
+        alone = engine.detect(frame).detections
+    finally:
+        del engine.align
+
+    def submit(points, *args, **kwargs):
+        sent.append(len(points))
+        return pool.submit(align, points, *args, **kwargs)
+
+    here = counting(engine)
+    try:
+        with ThreadPoolExecutor(1) as pool:
+            ahead = engine.detect(frame, submit=submit).detections
+    finally:
+        del engine.align
+    assert len(sent) >= 2, sent  # the segment, and a piece once the box was taken out
+    assert len(here) == len(asked) - len(sent), (len(here), len(asked), sent)  # none twice
+    assert [(d.answer.label, d.answer.verdict) for d in ahead] == [
+        (d.answer.label, d.answer.verdict) for d in alone
+    ]
+    for a, b in zip(ahead, alone, strict=True):
+        assert a.answer.confidence == b.answer.confidence
+        np.testing.assert_array_equal(a.answer.rotation, b.answer.rotation)
+        np.testing.assert_array_equal(a.indices, b.indices)
