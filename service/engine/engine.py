@@ -822,8 +822,9 @@ class Engine:
         rest = thin.take(keep)
         labels = segments(rest, angle)  # segments
         clock.lap("segments")
-        scan = self._scan(query, rest, thin, supports, scales, floor, min_confidence, deadline)
-        scan.submit = submit
+        scan = self._scan(
+            query, rest, thin, supports, scales, floor, min_confidence, deadline, submit
+        )
         try:
             instances = scan.instances(labels, max_instances)  # explain, take out, search again
             instances += self._found_again(scan, instances, labels, max_instances)  # more of one
@@ -835,7 +836,9 @@ class Engine:
         seen = apply_supports(frame, supports, angle)  # at full resolution
         return scan.answer(frame, seen, supports, instances, clock)
 
-    def _scan(self, query, rest, thin, supports, scales, floor, min_confidence, deadline) -> Scan:
+    def _scan(
+        self, query, rest, thin, supports, scales, floor, min_confidence, deadline, submit
+    ) -> Scan:
         """The search of a frame's points off its supports (``service.engine.scene``)."""
         return Scan(
             self.align,
@@ -849,6 +852,7 @@ class Engine:
             min_confidence,
             (float(scales.min()), float(scales.max())),
             deadline,
+            submit,
         )
 
     def _found_again(self, scan: Scan, found: list, labels: np.ndarray, most: int) -> list:

@@ -107,6 +107,15 @@ def near_surface(
     return inside[close], distance[close]
 
 
+def claimable(
+    available: np.ndarray, points: np.ndarray, entry: Entry, answer: Alignment, tolerance: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Of the free ``points`` (their indices ``available``), those within ``tolerance`` of the
+    part's surface at the answer's pose: (indices, distances)."""
+    close, distance = near_surface(points, entry, answer.rotation, answer.translation, tolerance)
+    return available[close], distance
+
+
 def settle_claims(instances: list[Instance], count: int, keep_share: float) -> list[Instance]:
     """The global check: of two instances of one part at about one pose (``DUPLICATE_GAP``),
     the less confident goes; a point claimed by several instances goes to the one whose
@@ -557,20 +566,15 @@ class Scan:
         entry = self.query.snapshot.entries[answer.label]
         tolerance = CLAIM_TOLERANCE * self.part_tolerance(entry, sigma)
         available = np.flatnonzero(self.free)
-        close, distance = near_surface(
-            self.frame.points[available], entry, answer.rotation, answer.translation, tolerance
-        )
-        claimed = available[close]
+        free = self.frame.points[available]
+        claimed, _ = claimable(available, free, entry, answer, tolerance)
         in_region = np.zeros(len(self.frame), dtype=bool)
         in_region[region] = True
         if in_region[claimed].sum() < MIN_EXPLAINED:
             return None
         # the pose finished on every point it claims: the chain saw a sample of a region
         self.finish(answer, entry, self.frame.points[claimed], tolerance / CLAIM_TOLERANCE)
-        close, distance = near_surface(
-            self.frame.points[available], entry, answer.rotation, answer.translation, tolerance
-        )
-        claimed = available[close]
+        claimed, distance = claimable(available, free, entry, answer, tolerance)
         inside = int(in_region[claimed].sum())
         if inside < MIN_EXPLAINED:
             return None
