@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from service.engine.bins import Band, bin_band
 from service.engine.frame import Frame
 from service.engine.normalize import subsample
 from service.engine.segments import components, grid_links
@@ -27,15 +28,16 @@ from service.engine.tuning import (
     BOUND_STRAYS,
     CARRIED_POINTS,
     LATER_SHARE,
+    LEVEL_CONNECTED,
     MAX_PLANES,
     MAX_SUPPORTS,
     PART_EXTENTS,
-    PLANE_ITERATIONS,
     RAISED_SHARE,
     SENSOR_NOISE,
     SLAB_SHARE,
     SUPPORT_CELLS,
     SUPPORT_CONNECTED,
+    SUPPORT_ITERATIONS,
     SUPPORT_NOISE,
     SUPPORT_REACH,
     SUPPORT_SAMPLE,
@@ -52,6 +54,7 @@ class Support:
     points: int  # the frame's points on it
     noise: float  # the robust spread of their distances to it (the sensor's depth noise) ...
     at_range: float  # ... at this median range from the camera
+    band: Band | None = None  # a bin's floor: where its walls and rims stand (``bins``)
 
     def noise_at(self, distance: float) -> float:
         """The sensor's noise at ``distance`` from the camera, growing with the range."""
@@ -134,13 +137,20 @@ def set_aside_supports(
             carrying = carries(on_plane, frame.points[off], plane, cell, least_over, apart)
         support = wall or carrying or vast
         if support and supports:  # one surface, not a slice through a pile's tops
-            support = connected(on_plane, plane, cell) >= SUPPORT_CONNECTED  # decisions.md#detect
+            least_patch = LEVEL_CONNECTED if level else SUPPORT_CONNECTED  # decisions.md#detect
+            support = connected(on_plane, plane, cell) >= least_patch
         if not support:
             faces[rest[on]] = True  # a part's face: the next plane may still be a support
             continue
         keep[rest[on]] = False
+        band = None
         if level:
             floors.append(on_plane)
+            others = frame.points[keep]
+            slack = float(np.median(tolerance[rest[on]]))
+            band = bin_band(on_plane, plane, in_plane(plane[:3]), others, cell, across, slack, rng)
+            if band is not None:
+                keep &= ~band.holds(frame.points)
         if not supports:  # what lies beyond the surface the parts rest on
             keep &= frame.points @ plane[:3] - plane[3] > -tolerance
             if keep.any():  # the parts lie in what is left
@@ -148,7 +158,7 @@ def set_aside_supports(
         residual = on_plane @ plane[:3] - plane[3]
         spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
         distance = np.linalg.norm(on_plane - frame.viewpoint, axis=1)
-        supports.append(Support(plane, len(on), spread, float(np.median(distance))))
+        supports.append(Support(plane, len(on), spread, float(np.median(distance)), band))
     return keep, supports
 
 
@@ -324,7 +334,7 @@ def largest_plane(
     a sample, refitted by least squares to its inliers; and the indices of its inliers."""
     chosen = subsample(points, SUPPORT_SAMPLE, rng)
     sample, slack = points[chosen], tolerance[chosen]
-    triples = sample[rng.integers(0, len(sample), size=(PLANE_ITERATIONS, 3))]
+    triples = sample[rng.integers(0, len(sample), size=(SUPPORT_ITERATIONS, 3))]
     normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
     length = np.linalg.norm(normals, axis=1)
     good = length > 1e-12
@@ -332,7 +342,10 @@ def largest_plane(
         return None
     normals = normals[good] / length[good, None]
     offsets = np.einsum("ij,ij->i", normals, triples[good, 0])
-    votes = (np.abs(sample @ normals.T - offsets) < slack[:, None]).sum(axis=0)
+    # each point's vote falls off with its distance (MSAC): a plane tilted through two levels
+    # (a bin's floor 1 cm over the table) holds both within the tolerance, but loosely
+    near = np.abs(sample @ normals.T - offsets) / slack[:, None]
+    votes = np.maximum(1 - near**2, 0).sum(axis=0)
     best = int(votes.argmax())
     on = np.flatnonzero(np.abs(points @ normals[best] - offsets[best]) < tolerance)
     if len(on) < 3:
@@ -354,6 +367,8 @@ def apply_supports(frame: Frame, supports: list[Support], angle: float) -> np.nd
         keep &= np.abs(height) >= tolerance
         if k == 0:
             keep &= height > -tolerance
+        if support.band is not None:
+            keep &= ~support.band.holds(frame.points)
     return keep
 
 

@@ -387,3 +387,31 @@ def test_asks_sent_ahead_to_another_process_answer_as_those_made_here(box_and_cu
         assert a.answer.confidence == b.answer.confidence
         np.testing.assert_array_equal(a.answer.rotation, b.answer.rotation)
         np.testing.assert_array_equal(a.indices, b.indices)
+
+
+def test_two_touching_boxes_are_found_whatever_the_search_draws():
+    """Two boxes side by side on a table, one segment: the placed views find each, under most
+    of the search's seeds, not a lucky one (docs/decisions.md#two-touching-boxes-placed-again)."""
+    if not SETTINGS.model.path.exists():
+        pytest.skip(f"no ONNX model at {SETTINGS.model.path}")
+    sizes = {"box-a": (0.08, 0.06, 0.04), "box-b": (0.10, 0.04, 0.03)}
+    meshes = {name: trimesh.creation.box(size) for name, size in sizes.items()}
+    engine = Engine(
+        Mapper.from_settings(SETTINGS.model),
+        SETTINGS.engine,
+        Calibration.load(SETTINGS.confidence_path),
+    )
+    references = []
+    for name, mesh in meshes.items():
+        points, faces = sample_surface_faces(mesh, 2048, 0)
+        references.append(engine.make_reference(name, points, mesh=mesh, face_index=faces))
+    engine.load(references)
+    a = resting(meshes["box-a"], np.eye(3), 0.0, 0.0)
+    b = resting(meshes["box-b"], np.eye(3), 0.0, (sizes["box-a"][1] + sizes["box-b"][1]) / 2)
+    frame = frame_of(shoot([(meshes["box-a"], *a), (meshes["box-b"], *b)], table()))
+    both = 0
+    for seed in range(10):
+        engine.settings = engine.settings.model_copy(update={"seed": seed})
+        found = sorted(d.answer.label for d in engine.detect(frame).detections)
+        both += found == ["box-a", "box-b"]
+    assert both >= 8, f"both boxes, and nothing else, under {both} of 10 seeds"

@@ -1,0 +1,96 @@
+"""A bin around its floor: the band its walls and rims stand in, set aside with the floor.
+
+A bin's floor is found as a support (level on the table, just above it), but its walls hold
+too few points each to be found as planes, and its rims (the walls' tops, level with the
+table at the walls' height) look like parts' top faces. Both lie where no part in the bin
+can: over the floor's outline. The floor's outline is the smallest rectangle round its points
+(the floor is seen between the parts on it, out to the walls' feet); the band runs from just
+inside it to ``BAND_OUTSIDE`` of the floor's reach outside it, from the table up. A part lying in
+the bin lies inside the outline (docs/decisions.md#a-bins-walls-and-rims).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+
+from service.engine.normalize import subsample
+from service.engine.tuning import BAND_INSIDE, BAND_OUTSIDE, BAND_SIDE, BAND_STANDING, BAND_TRIM
+
+
+@dataclass(frozen=True)
+class Band:
+    """The band a bin's walls and rims stand in, round its floor's outline."""
+
+    plane: np.ndarray  # (4,) the floor's plane, the normal towards the camera
+    axes: np.ndarray  # (3, 2) the outline's two axes, in the floor's plane
+    centre: np.ndarray  # (2,) the outline's centre along them
+    half: np.ndarray  # (2,) its half sides
+    inside: float  # the band starts this far inside the outline ...
+    outside: float  # ... and ends this far outside it
+    below: float  # points lower than this under the floor's plane are not the bin's
+
+    def holds(self, points: np.ndarray) -> np.ndarray:
+        """(N,) which of ``points`` lie in the band."""
+        height = points @ self.plane[:3] - self.plane[3]
+        across = np.abs(points @ self.axes - self.centre)
+        within = np.all(across <= self.half + self.outside, axis=1)
+        deep_inside = np.all(across < self.half - self.inside, axis=1)
+        return within & ~deep_inside & (height > self.below)
+
+
+def outline(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The smallest rectangle round 2-D points (its sides along one of their hull's edges),
+    trimmed to the ``BAND_TRIM`` and 1 - ``BAND_TRIM`` quantiles along its axes: (the unit
+    direction of its first side, its centre and its half sides in that frame)."""
+    try:
+        hull = flat[ConvexHull(flat).vertices]
+    except QhullError:
+        hull = flat
+    edges = np.diff(np.vstack([hull, hull[:1]]), axis=0)
+    directions = edges / np.maximum(np.linalg.norm(edges, axis=1, keepdims=True), 1e-12)
+    best, best_area = np.array([1.0, 0.0]), np.inf
+    for direction in directions:
+        frame = np.stack([direction, [-direction[1], direction[0]]], axis=1)
+        spans = np.ptp(hull @ frame, axis=0)
+        if spans[0] * spans[1] < best_area:
+            best, best_area = direction, spans[0] * spans[1]
+    frame = np.stack([best, [-best[1], best[0]]], axis=1)
+    along = flat @ frame
+    low, high = np.quantile(along, [BAND_TRIM, 1 - BAND_TRIM], axis=0)
+    return best, (low + high) / 2, (high - low) / 2
+
+
+def bin_band(
+    floor: np.ndarray,
+    plane: np.ndarray,
+    axes: np.ndarray,
+    others: np.ndarray,
+    cell: float,
+    reach: float,
+    tolerance: float,
+    rng: np.random.Generator,
+) -> Band | None:
+    """The band of the bin whose floor's points are ``floor`` (on ``plane``), if the points
+    left (``others``) stand in it as walls do: higher over the floor than its slab, along at
+    least three sides of its outline (``BAND_SIDE`` of the floor's points each); None for a
+    floor with nothing standing round it (a mat, a tray's flat bottom) or a part beside it.
+    ``axes``: two unit vectors spanning the plane."""
+    flat = floor[subsample(floor, 4096, rng)] @ axes
+    if len(flat) < 16:
+        return None
+    direction, centre, half = outline(flat)
+    turned = axes @ np.stack([direction, [-direction[1], direction[0]]], axis=1)
+    band = Band(plane, turned, centre, half, BAND_INSIDE * cell, BAND_OUTSIDE * reach, -tolerance)
+    held = others[band.holds(others)]
+    standing = held[held @ plane[:3] - plane[3] > BAND_STANDING * reach]
+    # by the side of the outline each stands at: walls round the floor, not a part beside it
+    offset = np.abs(standing @ band.axes - band.centre) - band.half
+    side = (
+        2 * np.argmax(offset, axis=1)
+        + (standing @ band.axes > band.centre)[np.arange(len(standing)), np.argmax(offset, axis=1)]
+    )
+    sides = np.bincount(side, minlength=4) >= BAND_SIDE * len(floor)
+    return band if sides.sum() >= 3 else None
