@@ -137,7 +137,8 @@ def set_aside_supports(
             carrying = carries(on_plane, frame.points[off], plane, cell, least_over, apart)
         support = wall or carrying or vast
         if support and supports:  # one surface, not a slice through a pile's tops
-            least_patch = LEVEL_CONNECTED if level else SUPPORT_CONNECTED  # decisions.md#detect
+            # parts lying on a bin's floor cut it up (decisions.md#a-bins-walls-and-rims)
+            least_patch = LEVEL_CONNECTED if level else SUPPORT_CONNECTED
             support = connected(on_plane, plane, cell) >= least_patch
         if not support:
             faces[rest[on]] = True  # a part's face: the next plane may still be a support

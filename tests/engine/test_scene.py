@@ -317,12 +317,17 @@ def box_and_cube(engine) -> tuple[Engine, dict[str, trimesh.Trimesh]]:
         engine.calibration,
         Calibration.load(SETTINGS.detect_confidence_path),
     )
+    return registered(calibrated, meshes), meshes | {"ball": trimesh.creation.icosphere(3, 0.02)}
+
+
+def registered(engine: Engine, meshes: dict[str, trimesh.Trimesh]) -> Engine:
+    """``engine`` holding each of ``meshes``, registered from 2,048 points on its faces."""
     references = []
     for name, mesh in meshes.items():
         points, faces = sample_surface_faces(mesh, 2048, 0)
         references.append(engine.make_reference(name, points, mesh=mesh, face_index=faces))
-    calibrated.load(references)
-    return calibrated, meshes | {"ball": trimesh.creation.icosphere(3, 0.02)}
+    engine.load(references)
+    return engine
 
 
 def cube_beside_the_box(meshes, turn: float, distance: float):
@@ -389,23 +394,12 @@ def test_asks_sent_ahead_to_another_process_answer_as_those_made_here(box_and_cu
         np.testing.assert_array_equal(a.indices, b.indices)
 
 
-def test_two_touching_boxes_are_found_whatever_the_search_draws():
+def test_two_touching_boxes_are_found_whatever_the_search_draws(engine):
     """Two boxes side by side on a table, one segment: the placed views find each, under most
     of the search's seeds, not a lucky one (docs/decisions.md#two-touching-boxes-placed-again)."""
-    if not SETTINGS.model.path.exists():
-        pytest.skip(f"no ONNX model at {SETTINGS.model.path}")
     sizes = {"box-a": (0.08, 0.06, 0.04), "box-b": (0.10, 0.04, 0.03)}
     meshes = {name: trimesh.creation.box(size) for name, size in sizes.items()}
-    engine = Engine(
-        Mapper.from_settings(SETTINGS.model),
-        SETTINGS.engine,
-        Calibration.load(SETTINGS.confidence_path),
-    )
-    references = []
-    for name, mesh in meshes.items():
-        points, faces = sample_surface_faces(mesh, 2048, 0)
-        references.append(engine.make_reference(name, points, mesh=mesh, face_index=faces))
-    engine.load(references)
+    engine = registered(Engine(engine.mapper, SETTINGS.engine, engine.calibration), meshes)
     a = resting(meshes["box-a"], np.eye(3), 0.0, 0.0)
     b = resting(meshes["box-b"], np.eye(3), 0.0, (sizes["box-a"][1] + sizes["box-b"][1]) / 2)
     frame = frame_of(shoot([(meshes["box-a"], *a), (meshes["box-b"], *b)], table()))
