@@ -14,7 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
+import trimesh
+from scipy.spatial import QhullError
 
 from service.engine.normalize import subsample
 from service.engine.tuning import BAND_INSIDE, BAND_OUTSIDE, BAND_SIDE, BAND_STANDING, BAND_TRIM
@@ -42,55 +43,47 @@ class Band:
 
 
 def outline(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The smallest rectangle round 2-D points (its sides along one of their hull's edges),
-    trimmed to the ``BAND_TRIM`` and 1 - ``BAND_TRIM`` quantiles along its axes: (the unit
-    direction of its first side, its centre and its half sides in that frame)."""
-    try:
-        hull = flat[ConvexHull(flat).vertices]
-    except QhullError:
-        hull = flat
-    edges = np.diff(np.vstack([hull, hull[:1]]), axis=0)
-    directions = edges / np.maximum(np.linalg.norm(edges, axis=1, keepdims=True), 1e-12)
-    best, best_area = np.array([1.0, 0.0]), np.inf
-    for direction in directions:
-        frame = np.stack([direction, [-direction[1], direction[0]]], axis=1)
-        spans = np.ptp(hull @ frame, axis=0)
-        if spans[0] * spans[1] < best_area:
-            best, best_area = direction, spans[0] * spans[1]
-    frame = np.stack([best, [-best[1], best[0]]], axis=1)
-    along = flat @ frame
-    low, high = np.quantile(along, [BAND_TRIM, 1 - BAND_TRIM], axis=0)
-    return best, (low + high) / 2, (high - low) / 2
+    """The smallest rectangle round 2-D points (trimesh's), trimmed to the ``BAND_TRIM`` and
+    1 - ``BAND_TRIM`` quantiles along its sides: (its two unit axes as the columns of a (2, 2)
+    matrix, its centre and its half sides along them). Points on a line: ``QhullError``."""
+    transform, _ = trimesh.bounds.oriented_bounds_2D(flat)
+    frame = transform[:2, :2].T
+    low, high = np.quantile(flat @ frame, [BAND_TRIM, 1 - BAND_TRIM], axis=0)
+    return frame, (low + high) / 2, (high - low) / 2
 
 
 def bin_band(
     floor: np.ndarray,
     plane: np.ndarray,
     axes: np.ndarray,
-    others: np.ndarray,
+    points: np.ndarray,
+    left: np.ndarray,
     cell: float,
     reach: float,
     tolerance: float,
     rng: np.random.Generator,
-) -> Band | None:
-    """The band of the bin whose floor's points are ``floor`` (on ``plane``), if the points
-    left (``others``) stand in it as walls do: higher over the floor than its slab, along at
-    least three sides of its outline (``BAND_SIDE`` of the floor's points each); None for a
-    floor with nothing standing round it (a mat, a tray's flat bottom) or a part beside it.
-    ``axes``: two unit vectors spanning the plane."""
+) -> tuple[Band, np.ndarray] | None:
+    """The band of the bin whose floor's points are ``floor`` (on ``plane``), and which of
+    ``points`` it holds, if those still ``left`` (a mask) stand in it as walls do: higher over
+    the floor than its slab, along at least three sides of its outline (``BAND_SIDE`` of the
+    floor's points each); None for a floor with nothing standing round it (a mat, a tray's
+    flat bottom) or a part beside it. ``axes``: two unit vectors spanning the plane."""
     flat = floor[subsample(floor, 4096, rng)] @ axes
     if len(flat) < 16:
         return None
-    direction, centre, half = outline(flat)
-    turned = axes @ np.stack([direction, [-direction[1], direction[0]]], axis=1)
-    band = Band(plane, turned, centre, half, BAND_INSIDE * cell, BAND_OUTSIDE * reach, -tolerance)
-    held = others[band.holds(others)]
-    standing = held[held @ plane[:3] - plane[3] > BAND_STANDING * reach]
-    # by the side of the outline each stands at: walls round the floor, not a part beside it
-    offset = np.abs(standing @ band.axes - band.centre) - band.half
-    side = (
-        2 * np.argmax(offset, axis=1)
-        + (standing @ band.axes > band.centre)[np.arange(len(standing)), np.argmax(offset, axis=1)]
+    try:
+        frame, centre, half = outline(flat)
+    except QhullError:  # the floor's points on a line: no outline
+        return None
+    band = Band(
+        plane, axes @ frame, centre, half, BAND_INSIDE * cell, BAND_OUTSIDE * reach, -tolerance
     )
+    held = band.holds(points)
+    standing = points[held & left]
+    standing = standing[standing @ plane[:3] - plane[3] > BAND_STANDING * reach]
+    # by the side of the outline each stands at: walls round the floor, not a part beside it
+    along = standing @ band.axes - band.centre
+    axis = np.argmax(np.abs(along) - band.half, axis=1)
+    side = 2 * axis + (along[np.arange(len(along)), axis] > 0)
     sides = np.bincount(side, minlength=4) >= BAND_SIDE * len(floor)
-    return band if sides.sum() >= 3 else None
+    return (band, held) if sides.sum() >= 3 else None

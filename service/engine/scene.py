@@ -59,7 +59,6 @@ from service.engine.tuning import (
     MIN_SEGMENT,
     NOISE_TOLERANCES,
     PIECE_CELLS,
-    PLACED_TRIED,
     SEGMENT_POINTS,
     TEMPLATE_FIT,
     TEMPLATE_PARTS,
@@ -426,15 +425,16 @@ class Scan:
                 self.query.rng,
                 self.camera,
             )
-            for pose in poses[:PLACED_TRIED]:
-                close, _ = near_surface(
-                    points, entry, pose.rotation, pose.translation, CLAIM_TOLERANCE * tolerance
-                )
-                if len(close) < MIN_EXPLAINED:
-                    continue
-                found = self.claim(region, self.answer_for(points[close], sigma), sigma)
-                if found is not None:
-                    return found
+            if not poses:
+                continue
+            close, _ = near_surface(
+                points, entry, poses[0].rotation, poses[0].translation, CLAIM_TOLERANCE * tolerance
+            )
+            if len(close) < MIN_EXPLAINED:
+                continue
+            found = self.claim(region, self.answer_for(points[close], sigma), sigma)
+            if found is not None:
+                return found
         return None
 
     def may_hold_several(self, points: np.ndarray, answer: Alignment) -> bool:

@@ -147,11 +147,12 @@ def set_aside_supports(
         band = None
         if level:
             floors.append(on_plane)
-            others = frame.points[keep]
             slack = float(np.median(tolerance[rest[on]]))
-            band = bin_band(on_plane, plane, in_plane(plane[:3]), others, cell, across, slack, rng)
-            if band is not None:
-                keep &= ~band.holds(frame.points)
+            axes = in_plane(plane[:3])
+            found = bin_band(on_plane, plane, axes, frame.points, keep, cell, across, slack, rng)
+            if found is not None:
+                band, held = found
+                keep &= ~held
         if not supports:  # what lies beyond the surface the parts rest on
             keep &= frame.points @ plane[:3] - plane[3] > -tolerance
             if keep.any():  # the parts lie in what is left

@@ -136,7 +136,6 @@ TEMPLATE_ANGLES = 12  # ... turned about the line of sight this many times
 TEMPLATE_POINTS = 24  # ... screened on this many of each view's expected points
 TEMPLATE_TOLERANCE = 0.1  # ... within this share of the part's scale
 TEMPLATE_REFINED = 16  # the best placed views refined (per seed kept, then overall)
-PLACED_TRIED = 1  # of those, the best this many each asked about in turn
 TEMPLATE_PARTS = 3  # parts whose views are placed over a segment where the chain found none
 PINHOLE_RESIDUAL_PX = 0.75  # a frame whose pixels fit a pinhole this well has a depth image
 RANK_EVERY, RANK_ANGLES, RANK_SEEDS = 4, 8, 3  # ... which parts: every 4th view, 8 turns, 3 seeds
