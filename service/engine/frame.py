@@ -72,12 +72,13 @@ class Frame:
         if np.any(index[1:] < index[:-1]):  # a frame's points come in pixel order: no sort
             order = np.argsort(index)
             index, points = index[order], points[order]
-        beside = np.flatnonzero(np.diff(index) == self.step)
-        if len(beside) < 16:
+        beside = np.diff(index) == self.step
+        if beside.sum() < 16:
             return spacing_angle(self.points, self.viewpoint)
         rays = points - self.viewpoint
         rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-        cosine = np.einsum("ij,ij->i", rays[beside], rays[beside + 1])
+        # every point with the next (contiguous slices, no gather), then the neighbours' pairs
+        cosine = np.einsum("ij,ij->i", rays[:-1], rays[1:])[beside]
         return float(np.median(np.arccos(np.clip(cosine, -1.0, 1.0)))) / self.step
 
     def thinned(self, voxel: float) -> Frame:
