@@ -833,7 +833,7 @@ class Engine:
         clock.lap("instances")
         instances = settle_claims(instances, len(rest), KEEP_SHARE)  # one global check
         clock.lap("global check")
-        seen = apply_supports(frame, supports, angle)  # at full resolution
+        seen = keep if thin is frame else apply_supports(frame, supports, angle)  # full res
         return scan.answer(frame, seen, supports, instances, clock)
 
     def _scan(

@@ -16,6 +16,8 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import cKDTree
 
+from service.engine.normalize import subsample
+
 
 @dataclass(frozen=True)
 class Frame:
@@ -89,16 +91,28 @@ class Frame:
             return self
         if self.shape is not None:
             footprint = self.pixel_angle() * float(np.median(self.ranges()))
-            step = int(voxel // max(footprint, 1e-12))
-            if step <= 1:
-                return self
-            stride = self.step * step
-            keep = (self.rows % stride == 0) & (self.columns % stride == 0)
-            thin = self.take(keep)
-            return Frame(thin.points, thin.index, self.shape, self.viewpoint, stride)
+            return self.every(int(voxel // max(footprint, 1e-12)))
         cells = np.floor(self.points / voxel).astype(np.int64)
         _, first = np.unique(cells, axis=0, return_index=True)
         return self.take(np.sort(first))
+
+    def every(self, step: int) -> Frame:
+        """Every ``step``-th row and column of an organized frame's grid (itself for 1)."""
+        if step <= 1:
+            return self
+        stride = self.step * step
+        keep = (self.rows % stride == 0) & (self.columns % stride == 0)
+        thin = self.take(keep)
+        return Frame(thin.points, thin.index, self.shape, self.viewpoint, stride)
+
+    def at_most(self, count: int, rng: np.random.Generator) -> Frame:
+        """A coarser copy of about ``count`` points at most: every k-th row and column of an
+        organized frame, a random sample of a cloud without a grid."""
+        if len(self) <= count:
+            return self
+        if self.shape is None:
+            return self.take(subsample(self.points, count, rng))
+        return self.every(int(np.ceil(np.sqrt(len(self) / count))))
 
     def ranges(self) -> np.ndarray:
         """(N,) each point's distance from the camera (read-only: computed once a frame, for

@@ -39,6 +39,7 @@ from service.engine.tuning import (
     SUPPORT_CONNECTED,
     SUPPORT_ITERATIONS,
     SUPPORT_NOISE,
+    SUPPORT_POINTS,
     SUPPORT_REACH,
     SUPPORT_SAMPLE,
     SUPPORT_SHARE,
@@ -61,10 +62,12 @@ class Support:
         return self.noise * distance / max(self.at_range, 1e-12)
 
 
-def tolerances(frame: Frame, angle: float) -> np.ndarray:
+def tolerances(frame: Frame, angle: float, step: int | None = None) -> np.ndarray:
     """(N,) how far from a support plane each point of the frame may lie and be on it: some
-    pixel footprints at its range, and the sensor's depth noise."""
-    return frame.ranges() * (SUPPORT_SPACINGS * angle * frame.step + SUPPORT_NOISE)
+    pixel footprints (of a grid of stride ``step``, the frame's own by default) at its range,
+    and the sensor's depth noise."""
+    step = frame.step if step is None else step
+    return frame.ranges() * (SUPPORT_SPACINGS * angle * step + SUPPORT_NOISE)
 
 
 def largest_fitting(scales: np.ndarray, size: float) -> float:
@@ -87,16 +90,39 @@ def set_aside_supports(
     """Which of the frame's points are left once the supports are set aside (a mask), and the
     supports. ``angle``: the angle between neighbouring pixels' rays (``Frame.pixel_angle``);
     ``scales``: those of the parts the frame may hold (the largest that fits in the frame, then
-    in what is left once the first support is set aside, is the largest a part may have)."""
+    in what is left once the first support is set aside, is the largest a part may have).
+    The supports are found on a coarser copy of ``SUPPORT_POINTS`` points at most, judged at
+    the frame's own tolerances, and set aside at the frame's resolution: a support holds a
+    share of the frame, and a quarter of its points tell it as well
+    (docs/decisions.md#supports-on-a-coarser-copy)."""
+    coarse = frame.at_most(SUPPORT_POINTS, rng)
+    density = len(frame) / max(len(coarse), 1)
+    supports = find_supports(coarse, angle, scales, rng, frame.step, density)
+    return apply_supports(frame, supports, angle), supports
+
+
+def find_supports(
+    frame: Frame,
+    angle: float,
+    scales: np.ndarray,
+    rng: np.random.Generator,
+    step: int,
+    density: float,
+) -> list[Support]:
+    """The supports of a frame (``set_aside_supports``), found on its coarser copy ``frame``:
+    ``step``: the stride of the frame's own grid, whose tolerances and cells they are judged
+    at; ``density``: how many of its points each of the copy's stands for."""
+    if not len(frame):
+        return []
     largest = largest_fitting(scales, extent(frame.points))
     links: tuple[np.ndarray, np.ndarray] | None = None  # the frame's pixel links, if needed
     floors: list[np.ndarray] = []  # the points of the bins' floors found
     keep = np.ones(len(frame), dtype=bool)
     faces = np.zeros(len(frame), dtype=bool)  # on planes found to be parts' faces
     supports: list[Support] = []
-    tolerance = tolerances(frame, angle)
-    ranges = frame.ranges() if len(frame) else np.zeros(1)
-    cell = SUPPORT_CELLS * angle * frame.step * float(np.median(ranges))
+    tolerance = tolerances(frame, angle, step)
+    ranges = frame.ranges()
+    cell = SUPPORT_CELLS * angle * step * float(np.median(ranges))
     for _ in range(MAX_PLANES):
         rest = np.flatnonzero(keep & ~faces)
         # the first holds a share of the frame; the next (walls) a share of what is left
@@ -117,7 +143,7 @@ def set_aside_supports(
         wide = level or across >= largest  # a bin's floor: level with the table, just above it
         # a table over the floor, where the floor was found first (docs/decisions.md#detect)
         raised = bool(supports) and is_raised(on_plane, plane, supports[0], across)
-        raised = raised and len(on) >= RAISED_SHARE * supports[0].points
+        raised = raised and len(on) * density >= RAISED_SHARE * supports[0].points
         # no part's face reaches this far: the table under a bin, whatever lies behind its
         # cells (a later plane may be parts' faces side by side: it must carry, or be a wall)
         vast = not supports and across >= SUPPORT_REACH * largest
@@ -128,13 +154,15 @@ def set_aside_supports(
         # something and reaches farther than a part's face could
         least_over = CARRIED_POINTS if supports else 0
         may_carry = not supports or wide or raised
-        carrying = may_carry and carries(on_plane, frame.points[off], plane, cell, least_over)
+        carrying = may_carry and carries(
+            on_plane, frame.points[off], plane, cell, least_over, density=density
+        )
         if may_carry and not carrying and frame.shape is not None:
             # the background seen past a table's edge lies behind it too, but apart from it
             if links is None:
                 links = grid_links(frame, angle, ranges)[:2]
             apart = detached_behind(frame, links, rest[on], off, plane, tolerance, across)
-            carrying = carries(on_plane, frame.points[off], plane, cell, least_over, apart)
+            carrying = carries(on_plane, frame.points[off], plane, cell, least_over, apart, density)
         support = wall or carrying or vast
         if support and supports:  # one surface, not a slice through a pile's tops
             # parts lying on a bin's floor cut it up (decisions.md#a-bins-walls-and-rims)
@@ -160,8 +188,9 @@ def set_aside_supports(
         residual = on_plane @ plane[:3] - plane[3]
         spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
         distance = np.linalg.norm(on_plane - frame.viewpoint, axis=1)
-        supports.append(Support(plane, len(on), spread, float(np.median(distance)), band))
-    return keep, supports
+        counted = int(round(len(on) * density))
+        supports.append(Support(plane, counted, spread, float(np.median(distance)), band))
+    return supports
 
 
 def carries(
@@ -171,18 +200,20 @@ def carries(
     cell: float,
     least: int = 0,
     apart: np.ndarray | None = None,
+    density: float = 1.0,
 ) -> bool:
     """Whether a plane carries what lies over it, as a table does: of the other points over
     the cells its own points occupy (more than ``least`` of them, and than ``CARRIED_POINTS``:
     else it is a bare surface, which carries only where ``least`` is 0), less than
     ``BEHIND_SHARE`` lie behind it (away from the camera), as a part's rest lies behind its
-    face. ``apart``: a mask of ``others`` that do not count (``detached_behind``)."""
+    face. ``apart``: a mask of ``others`` that do not count (``detached_behind``);
+    ``density``: how many points each of them stands for (a coarser copy's)."""
     if apart is not None:
         others = others[~apart]
     if not len(others):
         return least == 0
     over = lies_over(on_plane, others, plane, cell)
-    if over.sum() <= max(least, CARRIED_POINTS):  # too few to judge by: a bare surface
+    if over.sum() * density <= max(least, CARRIED_POINTS):  # too few to judge: a bare surface
         return least == 0
     height = others[over] @ plane[:3] - plane[3]
     return bool(np.mean(height < 0) < BEHIND_SHARE)

@@ -91,7 +91,8 @@ HPR_LOG_RADIUS = 2.8  # hidden-point removal's flipping sphere: 10**this times t
 
 # --- Whole frames: supports, segments, instances (docs/decisions.md#detect) ----------------------
 THIN_PER_SCALE = 20  # a frame is thinned to a voxel of the smallest part's scale over this
-SUPPORT_SAMPLE = 2048  # points the support planes are found on
+SUPPORT_SAMPLE = 2048  # points the support planes are found on ...
+SUPPORT_POINTS = 80_000  # ... and judged on: a coarser copy of the frame, at most this many
 SUPPORT_SHARE = 0.03  # a support holds at least this share of the frame's points ...
 LATER_SHARE = 0.1  # ... a later one (a wall) this share of the points left ...
 CARRIED_POINTS = 50  # ... carrying more points than this, unless it is a wall

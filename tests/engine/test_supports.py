@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from service.engine import supports as supports_module
 from service.engine.supports import set_aside_supports
 from tests.frames import box, frame_of, resting, shoot, spin
 
@@ -173,3 +174,26 @@ def test_a_mat_on_the_table_sets_aside_no_band_and_a_part_beside_it_is_left(part
     for k in range(len(placed)):
         mine = np.isin(frame.index, np.flatnonzero(shot.shows.ravel() == k))
         assert keep[mine].mean() > 0.9
+
+
+def test_supports_found_on_a_coarser_copy_are_those_of_the_whole_frame(parts, monkeypatch):
+    # a VGA frame holds about four times SUPPORT_POINTS: the supports are found on every
+    # other row and column, judged at the whole frame's tolerances, and set aside on it
+    bin_meshes, placed = raised_bin(parts)
+    shot = shoot(placed, [TOP, FLOOR, *bin_meshes], elevation_deg=65.0, distance=0.9)
+    frame = frame_of(shot).thinned(0.002)
+    coarse = frame.at_most(supports_module.SUPPORT_POINTS, np.random.default_rng(0))
+    assert len(coarse) <= supports_module.SUPPORT_POINTS < len(frame)
+    assert coarse.step > frame.step and np.all(coarse.rows % coarse.step == 0)
+    _, keep, supports = supports_of(shot)
+    monkeypatch.setattr(supports_module, "SUPPORT_POINTS", len(frame))  # the whole frame
+    _, whole_keep, whole = supports_of(shot)
+    assert len(supports) == len(whole) >= 2
+    for mine, theirs in zip(supports, whole, strict=True):
+        assert mine.plane[:3] @ theirs.plane[:3] > np.cos(np.radians(0.5))
+        assert abs(mine.plane[3] - theirs.plane[3]) < 0.002
+        assert abs(mine.points - theirs.points) < 0.05 * theirs.points
+    assert np.mean(keep == whole_keep) > 0.99
+    for k in range(len(placed)):
+        part = np.isin(frame.index, np.flatnonzero(shot.shows.ravel() == k))
+        assert keep[part].mean() > 0.9
