@@ -324,13 +324,21 @@ class Scan:
         found += self.with_fragments(
             labels, sizes, failed, set(small.tolist()), near, most - len(found)
         )
+        return found + self.joined(labels, failed, near, most - len(found))
+
+    def joined(self, labels: np.ndarray, failed: list[int], near: set, most: int) -> list:
+        """The failed segments that ``near`` pairs, each pair searched as one region (no wider
+        than ``JOIN_SCALES`` of the largest part), ``MAX_JOINS`` at most: a part a jump in
+        depth cut in two. A pair whose points were claimed since is skipped."""
+        found: list[Instance] = []
         joins = 0
         for a, b in sorted((a, b) for a, b in near if a in failed and b in failed):
             region = np.flatnonzero(((labels == a) | (labels == b)) & self.free)
             if len(found) >= most or joins == MAX_JOINS:
                 break
-            too_big = radius(self.frame.points[region]) > JOIN_SCALES * self.sizes[1]
-            if too_big or not self.worth_searching(region):
+            if not self.worth_searching(region):  # few points, or none left free
+                continue
+            if radius(self.frame.points[region]) > JOIN_SCALES * self.sizes[1]:
                 continue
             if not self.in_time():
                 return found

@@ -17,7 +17,9 @@ from service.engine.engine import Engine
 from service.engine.mapping import Mapper
 from service.engine.sampling import sample_surface_faces
 from service.engine.scene import Instance, settle_claims
-from service.engine.tuning import MIN_SEGMENT, SEGMENT_POINTS
+from service.engine.segments import segments
+from service.engine.supports import set_aside_supports
+from service.engine.tuning import MIN_SEGMENT, SEGMENT_POINTS, THIN_PER_SCALE
 from service.settings import Settings
 from tests.frames import frame_of, resting, shoot, spin, table
 
@@ -409,3 +411,28 @@ def test_two_touching_boxes_are_found_whatever_the_search_draws(engine):
         found = sorted(d.answer.label for d in engine.detect(frame).detections)
         both += found == ["box-a", "box-b"]
     assert both >= 8, f"both boxes, and nothing else, under {both} of 10 seeds"
+
+
+def test_a_pair_of_failed_segments_claimed_since_is_not_joined(engine):
+    # two boxes, each its own segment, both failed; an instance found since (by the fragments
+    # or an earlier join) claimed every point of both: their join is skipped, nothing asked.
+    # An empty region raised in the join's width check (a 500 on a real frame)
+    mesh = trimesh.creation.box((0.08, 0.06, 0.04))
+    placed = [(mesh, *resting(mesh, spin(25 + 40 * k), 0.14 * k - 0.07, 0.0)) for k in range(2)]
+    frame = frame_of(shoot(placed, table()))
+    query = engine.query(None, None, True, None, frame.viewpoint)
+    scales = engine._frame_scales(query, frame)
+    thin = frame.thinned(scales.min() / THIN_PER_SCALE)
+    keep, supports = set_aside_supports(thin, frame.pixel_angle(), scales, query.rng)
+    rest = thin.take(keep)
+    labels = segments(rest, frame.pixel_angle())
+    a, b = np.argsort(-np.bincount(labels))[:2]
+    scan = engine._scan(query, rest, thin, supports, scales, None, None, None, None)
+    assert scan.worth_searching(np.flatnonzero((labels == a) | (labels == b)))
+    scan.free[(labels == a) | (labels == b)] = False
+    calls = counting(engine)
+    try:
+        assert scan.joined(labels, [int(a), int(b)], {(int(min(a, b)), int(max(a, b)))}, 20) == []
+    finally:
+        del engine.align
+    assert calls == []
