@@ -38,13 +38,14 @@ from service.engine.look_alikes import doubt
 from service.engine.normalize import radius, subsample
 from service.engine.projection import DepthImage
 from service.engine.query import Query, Stopwatch
-from service.engine.segments import adjacent, cell_groups
+from service.engine.segments import adjacent, cell_groups, segments
 from service.engine.supports import Noise, Support
 from service.engine.templates import likeliest, place_views
 from service.engine.tuning import (
     CHAIN_AGREES,
     CLAIM_TOLERANCE,
     DUPLICATE_GAP,
+    FINER_LINKS,
     FINISH_ITERATIONS,
     FINISH_POINTS,
     FRAGMENT,
@@ -310,8 +311,10 @@ class Scan:
                     return found
                 tries += 1
                 instance = self.instance(region)
+                if instance is None and tries == 1:  # touching parts, a depth jump between
+                    failed.append(segment)
+                    pending = self.finer(region) + pending
                 if instance is None:
-                    failed += [segment] if tries == 1 else []
                     continue
                 self.take(instance, found)
                 pieces = self.pieces(region[self.free[region]])
@@ -394,6 +397,20 @@ class Scan:
         sizes = np.bincount(group)
         order = np.argsort(-sizes, kind="stable")
         return [region[group == g] for g in order if sizes[g] >= MIN_SEGMENT]
+
+    def finer(self, region: np.ndarray) -> list[np.ndarray]:
+        """A segment the search found nothing in, split at finer jumps in depth
+        (``FINER_LINKS``, the first that parts it), its pieces largest first: two parts
+        touching, one in front of the other, join at the usual links but part at finer ones
+        (docs/decisions.md#a-segment-split-finer). None where no level parts it."""
+        frame = self.frame.take(region)
+        for links in FINER_LINKS:
+            labels = segments(frame, self.frame.pixel_angle(), links)
+            sizes = np.bincount(labels)
+            order = [g for g in np.argsort(-sizes, kind="stable") if sizes[g] >= MIN_SEGMENT]
+            if len(order) >= 2:
+                return [region[labels == g] for g in order]
+        return []
 
     def take(self, instance: Instance, found: list[Instance]) -> None:
         """``instance`` added to ``found``, its points out of the search."""

@@ -19,32 +19,44 @@ from service.engine.tuning import LINK_FOOTPRINTS, LINK_NOISE
 OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1), (0, 2), (2, 0))
 
 
-def segments(frame: Frame, angle: float) -> np.ndarray:
+def segments(
+    frame: Frame, angle: float, links: tuple[float, float] = (LINK_FOOTPRINTS, LINK_NOISE)
+) -> np.ndarray:
     """(N,) a segment label per point of ``frame``; ``angle``: the angle between neighbouring
-    pixels' rays at full resolution (``Frame.pixel_angle``)."""
+    pixels' rays at full resolution (``Frame.pixel_angle``); ``links``: how near neighbours
+    must lie to be joined, in footprints and as a share of the range."""
     if len(frame) == 0:
         return np.zeros(0, dtype=np.intp)
     ranges = frame.ranges()
     if frame.shape is None:
-        link = LINK_FOOTPRINTS * angle * float(np.median(ranges))
-        link += LINK_NOISE * float(np.median(ranges))
+        footprints, noise = links
+        link = (footprints * angle + noise) * float(np.median(ranges))
         return groups(frame.points, link)
-    return grid_segments(frame, angle, ranges)
+    return grid_segments(frame, angle, ranges, links)
 
 
-def grid_segments(frame: Frame, angle: float, ranges: np.ndarray) -> np.ndarray:
+def grid_segments(
+    frame: Frame,
+    angle: float,
+    ranges: np.ndarray,
+    links: tuple[float, float] = (LINK_FOOTPRINTS, LINK_NOISE),
+) -> np.ndarray:
     """Connected components of the organized frame's pixels, a pixel linked to each of its
-    ``OFFSETS`` neighbours closer than ``LINK_FOOTPRINTS`` of its own footprint (per pixel
-    of offset) plus ``LINK_NOISE`` of its range."""
-    first, second, _ = grid_links(frame, angle, ranges)
+    ``OFFSETS`` neighbours closer than ``links[0]`` of its own footprint (per pixel of
+    offset) plus ``links[1]`` of its range."""
+    first, second, _ = grid_links(frame, angle, ranges, links)
     return components(len(frame), first, second)
 
 
 def grid_links(
-    frame: Frame, angle: float, ranges: np.ndarray
+    frame: Frame,
+    angle: float,
+    ranges: np.ndarray,
+    links: tuple[float, float] = (LINK_FOOTPRINTS, LINK_NOISE),
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The linked pairs of neighbouring pixels (``grid_segments``), as two index arrays into
     the frame's points, and each pair's offset length in pixels."""
+    footprints, noise = links
     height, width = frame.shape
     step = frame.step
     rows, columns = frame.rows // step, frame.columns // step
@@ -67,8 +79,8 @@ def grid_links(
         there = other >= 0
         mine, other = mine[there], other[there]
         gap = np.linalg.norm(np.take(points, mine, axis=0) - np.take(points, other, axis=0), axis=1)
-        reach = LINK_FOOTPRINTS * np.take(footprint, mine) * length
-        linked = gap < reach + LINK_NOISE * np.take(ranges, mine)
+        reach = footprints * np.take(footprint, mine) * length
+        linked = gap < reach + noise * np.take(ranges, mine)
         firsts.append(mine[linked])
         seconds.append(other[linked])
         lengths.append(np.full(len(firsts[-1]), length))

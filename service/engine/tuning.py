@@ -120,6 +120,7 @@ BAND_SIDE = 0.01  # ... along three sides, each as many as this share of the flo
 BAND_TRIM = 0.002  # the outline: the floor's points but this share on each side
 LINK_FOOTPRINTS = 3.0  # neighbouring pixels this many footprints apart are one segment ...
 LINK_NOISE = 0.004  # ... plus this share of their range
+FINER_LINKS = ((2.0, 0.002), (1.2, 0.0005))  # a failed segment split again: footprints, share
 MIN_SEGMENT = 60  # a segment (or what is left of it) of fewer points is not searched
 MIN_EXPLAINED = 40  # an instance explains at least this many of its segment's points
 MATCH_POINTS = 150  # ... and a "match" this many (fewer were right 8 times in 244)

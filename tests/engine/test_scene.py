@@ -419,15 +419,8 @@ def test_a_pair_of_failed_segments_claimed_since_is_not_joined(engine):
     # An empty region raised in the join's width check (a 500 on a real frame)
     mesh = trimesh.creation.box((0.08, 0.06, 0.04))
     placed = [(mesh, *resting(mesh, spin(25 + 40 * k), 0.14 * k - 0.07, 0.0)) for k in range(2)]
-    frame = frame_of(shoot(placed, table()))
-    query = engine.query(None, None, True, None, frame.viewpoint)
-    scales = engine._frame_scales(query, frame)
-    thin = frame.thinned(scales.min() / THIN_PER_SCALE)
-    keep, supports = set_aside_supports(thin, frame.pixel_angle(), scales, query.rng)
-    rest = thin.take(keep)
-    labels = segments(rest, frame.pixel_angle())
+    scan, labels, _ = scan_of(engine, shoot(placed, table()))
     a, b = np.argsort(-np.bincount(labels))[:2]
-    scan = engine._scan(query, rest, thin, supports, scales, None, None, None, None)
     assert scan.worth_searching(np.flatnonzero((labels == a) | (labels == b)))
     scan.free[(labels == a) | (labels == b)] = False
     calls = counting(engine)
@@ -436,3 +429,40 @@ def test_a_pair_of_failed_segments_claimed_since_is_not_joined(engine):
     finally:
         del engine.align
     assert calls == []
+
+
+def scan_of(engine: Engine, shot):
+    """The search ``Engine.detect`` makes of a shot's frame, its supports set aside: the scan,
+    its segments' labels, and which object each of its points shows (-1: none)."""
+    frame = frame_of(shot)
+    query = engine.query(None, None, True, None, frame.viewpoint)
+    scales = engine._frame_scales(query, frame)
+    thin = frame.thinned(scales.min() / THIN_PER_SCALE)
+    keep, supports = set_aside_supports(thin, frame.pixel_angle(), scales, query.rng)
+    rest = thin.take(keep)
+    scan = engine._scan(query, rest, thin, supports, scales, None, None, None, None)
+    return scan, segments(rest, frame.pixel_angle()), shot.shows.ravel()[rest.index]
+
+
+def test_a_segment_of_two_parts_one_before_the_other_is_split_finer(engine):
+    # a low box 6 mm before a tall one: one segment at the usual links (the low box's top edge
+    # lies within them of the tall one's face behind it), two at finer ones. A lone box is
+    # not split (docs/decisions.md#a-segment-split-finer)
+    low, tall = trimesh.creation.box((0.08, 0.06, 0.04)), trimesh.creation.box((0.1, 0.05, 0.1))
+    placed = [
+        (low, *resting(low, spin(0), 0.0, -0.036)),
+        (tall, *resting(tall, spin(0), 0.0, 0.025)),
+    ]
+    scan, labels, shows = scan_of(
+        engine, shoot(placed, table(), azimuth_deg=-60.0, elevation_deg=50.0)
+    )
+    region = np.flatnonzero(labels == np.argmax(np.bincount(labels)))
+    assert {0, 1} <= set(shows[region].tolist()), "the two boxes are not one segment"
+    pieces = scan.finer(region)
+    assert len(pieces) >= 2
+    for k, piece in enumerate(pieces[:2]):
+        assert np.mean(shows[piece] == shows[piece][0]) > 0.95, f"piece {k} mixes the boxes"
+    assert {shows[p][0] for p in pieces[:2]} == {0, 1}
+    alone = shoot([placed[1]], table(), azimuth_deg=-60.0, elevation_deg=50.0)
+    scan, labels, _ = scan_of(engine, alone)
+    assert scan.finer(np.flatnonzero(labels == np.argmax(np.bincount(labels)))) == []
