@@ -402,7 +402,7 @@ class Scan:
         """A segment the search found nothing in, split at finer jumps in depth
         (``FINER_LINKS``, the first that parts it), its pieces largest first: two parts
         touching, one in front of the other, join at the usual links but part at finer ones
-        (docs/decisions.md#a-segment-split-finer). None where no level parts it."""
+        (docs/decisions.md#a-segment-split-finer). Empty where no level parts it."""
         frame = self.frame.take(region)
         for links in FINER_LINKS:
             labels = segments(frame, self.frame.pixel_angle(), links)

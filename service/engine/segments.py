@@ -17,11 +17,10 @@ from service.engine.tuning import LINK_FOOTPRINTS, LINK_NOISE
 
 # neighbouring pixels linked: right, down, the diagonals, and two along (across a missing one)
 OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1), (0, 2), (2, 0))
+LINKS = (LINK_FOOTPRINTS, LINK_NOISE)  # how near neighbours lie to be joined: footprints, range
 
 
-def segments(
-    frame: Frame, angle: float, links: tuple[float, float] = (LINK_FOOTPRINTS, LINK_NOISE)
-) -> np.ndarray:
+def segments(frame: Frame, angle: float, links: tuple[float, float] = LINKS) -> np.ndarray:
     """(N,) a segment label per point of ``frame``; ``angle``: the angle between neighbouring
     pixels' rays at full resolution (``Frame.pixel_angle``); ``links``: how near neighbours
     must lie to be joined, in footprints and as a share of the range."""
@@ -39,7 +38,7 @@ def grid_segments(
     frame: Frame,
     angle: float,
     ranges: np.ndarray,
-    links: tuple[float, float] = (LINK_FOOTPRINTS, LINK_NOISE),
+    links: tuple[float, float] = LINKS,
 ) -> np.ndarray:
     """Connected components of the organized frame's pixels, a pixel linked to each of its
     ``OFFSETS`` neighbours closer than ``links[0]`` of its own footprint (per pixel of
@@ -52,7 +51,7 @@ def grid_links(
     frame: Frame,
     angle: float,
     ranges: np.ndarray,
-    links: tuple[float, float] = (LINK_FOOTPRINTS, LINK_NOISE),
+    links: tuple[float, float] = LINKS,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The linked pairs of neighbouring pixels (``grid_segments``), as two index arrays into
     the frame's points, and each pair's offset length in pixels."""
