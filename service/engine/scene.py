@@ -311,10 +311,9 @@ class Scan:
                     return found
                 tries += 1
                 instance = self.instance(region)
-                if instance is None and tries == 1:  # touching parts, a depth jump between
-                    failed.append(segment)
+                if instance is None:  # touching parts, a depth jump between them
+                    failed += [segment] if tries == 1 else []
                     pending = self.finer(region) + pending
-                if instance is None:
                     continue
                 self.take(instance, found)
                 pieces = self.pieces(region[self.free[region]])
