@@ -398,8 +398,8 @@ class Scan:
         return [region[group == g] for g in order if sizes[g] >= MIN_SEGMENT]
 
     def finer(self, region: np.ndarray) -> list[np.ndarray]:
-        """A segment the search found nothing in, split at finer jumps in depth
-        (``FINER_LINKS``, the first that parts it), its pieces largest first: two parts
+        """A region the search found nothing in (a segment, or what is left of one), split at
+        finer jumps in depth (``FINER_LINKS``, the first that parts it), largest first: two parts
         touching, one in front of the other, join at the usual links but part at finer ones
         (docs/decisions.md#a-segment-split-finer). Empty where no level parts it."""
         frame = self.frame.take(region)
