@@ -43,7 +43,7 @@ def grid_segments(
     """Connected components of the organized frame's pixels, a pixel linked to each of its
     ``OFFSETS`` neighbours closer than ``links[0]`` of its own footprint (per pixel of
     offset) plus ``links[1]`` of its range."""
-    first, second, _ = grid_links(frame, angle, ranges, links)
+    first, second = grid_links(frame, angle, ranges, links)
     return components(len(frame), first, second)
 
 
@@ -52,9 +52,9 @@ def grid_links(
     angle: float,
     ranges: np.ndarray,
     links: tuple[float, float] = LINKS,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray]:
     """The linked pairs of neighbouring pixels (``grid_segments``), as two index arrays into
-    the frame's points, and each pair's offset length in pixels."""
+    the frame's points."""
     footprints, noise = links
     height, width = frame.shape
     step = frame.step
@@ -65,7 +65,7 @@ def grid_links(
     where[pixel] = np.arange(len(frame))
     footprint = angle * step * ranges
     points = frame.points
-    firsts, seconds, lengths = [], [], []
+    firsts, seconds = [], []
     for down, right in OFFSETS:
         length = np.hypot(down, right)
         inside = rows < grid_height - down
@@ -82,8 +82,7 @@ def grid_links(
         linked = gap < reach + noise * np.take(ranges, mine)
         firsts.append(mine[linked])
         seconds.append(other[linked])
-        lengths.append(np.full(len(firsts[-1]), length))
-    return np.concatenate(firsts), np.concatenate(seconds), np.concatenate(lengths)
+    return np.concatenate(firsts), np.concatenate(seconds)
 
 
 def components(count: int, first: np.ndarray, second: np.ndarray) -> np.ndarray:

@@ -160,7 +160,7 @@ def find_supports(
         if may_carry and not carrying and frame.shape is not None:
             # the background seen past a table's edge lies behind it too, but apart from it
             if links is None:
-                links = grid_links(frame, angle, ranges)[:2]
+                links = grid_links(frame, angle, ranges)
             apart = detached_behind(frame, links, rest[on], off, plane, tolerance, across)
             carrying = carries(on_plane, frame.points[off], plane, cell, least_over, apart, density)
         support = wall or carrying or vast
