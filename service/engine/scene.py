@@ -293,8 +293,9 @@ class Scan:
     def instances(self, labels: np.ndarray, most: int) -> list[Instance]:
         """Each segment, largest first, searched until nothing more fits in it (``MAX_TRIES``
         searches at most): once an instance is taken out, each piece of what is left
-        (``pieces``); then the segments where nothing was found, with the fragments by them
-        (``with_fragments``), then joined with a neighbour in the image."""
+        (``pieces``), and once more what is left of a region where nothing was found that it
+        took points from (``freed``); then the segments where nothing was found, with the
+        fragments by them (``with_fragments``), then joined with a neighbour in the image."""
         found: list[Instance] = []
         sizes = np.bincount(labels) if len(labels) else np.zeros(0, int)
         failed = []
@@ -302,23 +303,29 @@ class Scan:
         self.ask_ahead([np.flatnonzero(labels == segment) for segment in order])
         for segment in order:
             pending, tries = [np.flatnonzero(labels == segment)], 0
-            while pending and tries < MAX_TRIES and len(found) < most:
-                region = pending.pop(0)
+            missed: list[np.ndarray] = []  # the regions of it where nothing was found
+            again: list[np.ndarray] = []  # ... that an instance took points from since
+            while (pending and tries < MAX_TRIES or again) and len(found) < most:
+                retry = not (pending and tries < MAX_TRIES)
+                region = again.pop(0) if retry else pending.pop(0)
                 region = region[self.free[region]]
                 if not self.worth_searching(region):
                     continue
                 if not self.in_time():
                     return found
-                tries += 1
+                tries += 0 if retry else 1
                 instance = self.instance(region)
                 if instance is None:  # touching parts, a depth jump between them
-                    failed += [segment] if tries == 1 else []
-                    pending = self.finer(region) + pending
+                    failed += [segment] if tries == 1 and not retry else []
+                    missed.append(region)
+                    pending = ([] if retry else self.finer(region)) + pending
                     continue
                 self.take(instance, found)
                 pieces = self.pieces(region[self.free[region]])
                 self.ask_ahead(pieces[: MAX_TRIES - tries])
                 pending = pieces + pending
+                freed, missed = self.freed(missed, pending + again)
+                again += freed
         # the failed segments' neighbours in the image: fragments, and other failed segments
         small = np.flatnonzero((sizes > 0) & (sizes < MIN_SEGMENT))
         chosen = np.concatenate([np.asarray(failed, dtype=np.intp), small])
@@ -384,6 +391,30 @@ class Scan:
                 self.take(instance, found)
                 failed.remove(segment)
         return found
+
+    def freed(
+        self, missed: list[np.ndarray], pending: list[np.ndarray]
+    ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """Of the regions where nothing was found, those an instance since took points from,
+        to be searched again without them and without what is to be searched anyway
+        (``pending``), where ``MIN_SEGMENT`` points are left; and the rest: a part beside
+        another one is posed once its neighbour's points are out
+        (docs/decisions.md#a-region-searched-again)."""
+        planned = np.zeros(len(self.frame), dtype=bool)
+        for region in pending:
+            planned[region] = True
+        again: list[np.ndarray] = []
+        kept: list[np.ndarray] = []
+        for region in sorted(missed, key=len, reverse=True):
+            left = region[self.free[region]]
+            if len(left) == len(region):
+                kept.append(region)
+                continue
+            left = left[~planned[left]]
+            if len(left) >= MIN_SEGMENT:
+                again.append(left)
+                planned[left] = True
+        return again, kept
 
     def pieces(self, region: np.ndarray) -> list[np.ndarray]:
         """What is left of a segment once an instance is taken out of it, in the pieces it

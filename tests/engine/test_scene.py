@@ -466,3 +466,22 @@ def test_a_segment_of_two_parts_one_before_the_other_is_split_finer(engine):
     alone = shoot([placed[1]], table(), azimuth_deg=-60.0, elevation_deg=50.0)
     scan, labels, _ = scan_of(engine, alone)
     assert scan.finer(np.flatnonzero(labels == np.argmax(np.bincount(labels)))) == []
+
+
+def test_a_region_an_instance_took_points_from_is_searched_again(engine):
+    # of the regions of a segment where nothing was found, one an instance took points from
+    # since is searched again with what is left, less the points still to be searched; one
+    # nothing took from is kept as it was, and one whose rest is all to be searched anyway is
+    # not searched twice (docs/decisions.md#a-region-searched-again)
+    mesh = trimesh.creation.box((0.08, 0.06, 0.04))
+    placed = [(mesh, *resting(mesh, spin(25 + 40 * k), 0.14 * k - 0.07, 0.0)) for k in range(2)]
+    scan, labels, _ = scan_of(engine, shoot(placed, table()))
+    a, b = (np.flatnonzero(labels == s) for s in np.argsort(-np.bincount(labels))[:2])
+    both = np.concatenate([a, b])
+    pending = [a[: len(a) // 2]]
+    scan.free[b] = False  # an instance took the second box
+    again, kept = scan.freed([both, a, b[:10]], pending)
+    assert [set(region.tolist()) for region in again] == [set(a[len(a) // 2 :].tolist())]
+    assert [len(region) for region in kept] == [len(a)]  # untouched
+    again, kept = scan.freed([both], [a])
+    assert again == [] and kept == []
