@@ -859,15 +859,22 @@ class Engine:
         """More instances of the parts matched ``SEVERAL`` times or more in the frame, looked for
         where nothing more was found, told only those parts: a frame that holds several of one
         part (a bin) may hold more of it, touching them, that the search among every part
-        missed (docs/decisions.md#detect)."""
+        missed (docs/decisions.md#detect). Those found already and doubted are judged again
+        as a frame told those parts would be
+        (docs/decisions.md#a-part-the-frame-holds-several-of)."""
         matched = Counter(i.answer.label for i in found if i.answer.verdict == "match")
         several = sorted(label for label, count in matched.items() if count >= SEVERAL)
-        if not several or len(found) >= most or not scan.in_time():
+        if not several:
             return []
         told = self.query(several, None, True, None, scan.query.viewpoint)
         if len(told.allowed) == len(scan.query.allowed):  # told those alone already
             return []
         again = scan.narrowed(told)  # judged as a frame told its parts
+        for instance in found:  # ... the instances of them found already, too
+            if instance.answer.label in several and instance.answer.verdict != "match":
+                again.judge(instance)
+        if len(found) >= most or not scan.in_time():
+            return []
         try:
             more = again.instances(labels, most - len(found))
         finally:

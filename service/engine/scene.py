@@ -717,7 +717,8 @@ class Scan:
                 f"only {said['seen']:.0%} of what the camera should see of {answer.label} is "
                 "in view: it may be hidden by others, or not this part"
             )
-        answer.reasons = reasons + [r for r in answer.reasons if "threshold" not in r]
+        earlier = [r for r in answer.reasons if "threshold" not in r]  # judged before, too
+        answer.reasons = list(dict.fromkeys(reasons + earlier))
         doubt(answer, share=False)
 
     def answer(

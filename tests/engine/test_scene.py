@@ -485,3 +485,42 @@ def test_a_region_an_instance_took_points_from_is_searched_again(engine):
     assert [len(region) for region in kept] == [len(a)]  # untouched
     again, kept = scan.freed([both], [a])
     assert again == [] and kept == []
+
+
+def test_a_part_the_frame_holds_several_of_is_judged_as_told(engine):
+    # three boxes apart on a table and a cube elsewhere in the gallery; a frame calibration
+    # that trusts an instance by its points alone, doubting the box seen by the fewest, and
+    # one for frames told their parts that trusts every instance. Two matches make the box a
+    # part the frame holds several of, and the doubted box is judged again as a frame told
+    # the box would be: a match (docs/decisions.md#a-part-the-frame-holds-several-of)
+    meshes = {"box": trimesh.creation.box((0.08, 0.06, 0.04))}
+    meshes["cube"] = trimesh.creation.box((0.03, 0.025, 0.02))
+    box = meshes["box"]
+    placed = [(box, *resting(box, spin(25 + 40 * k), 0.14 * k - 0.14, 0.0)) for k in range(3)]
+    frame = frame_of(shoot(placed, table()))
+    trusting = one_fit(bias=50.0)
+    probe = registered(Engine(engine.mapper, SETTINGS.engine, engine.calibration, trusting), meshes)
+    found = probe.detect(frame).detections
+    assert [d.answer.label for d in found] == ["box"] * 3
+    fewest, next_fewest = sorted(d.evidence["points"] for d in found)[:2]
+    assert next_fewest > fewest
+    # the confidence 0.45 at the fewest points (uncertain), 0.95 at the next (a match)
+    logit = lambda p: np.log(p / (1 - p))  # noqa: E731
+    at = trusting.features.index("points")
+    weights, mean, spread = (
+        np.zeros(len(trusting.features)),
+        trusting.mean.copy(),
+        trusting.spread.copy(),
+    )
+    weights[at], mean[at] = 1.0, fewest
+    spread[at] = (next_fewest - fewest) / (logit(0.95) - logit(0.45))
+    for told, verdicts in ((None, ["match", "match", "uncertain"]), (trusting, ["match"] * 3)):
+        doubting = one_fit(
+            weights=weights, mean=mean, spread=spread, bias=logit(0.45), accept=0.9, told=told
+        )
+        judged = registered(
+            Engine(engine.mapper, SETTINGS.engine, engine.calibration, doubting), meshes
+        )
+        found = judged.detect(frame).detections
+        assert [d.answer.label for d in found] == ["box"] * 3
+        assert sorted(d.answer.verdict for d in found) == sorted(verdicts)
