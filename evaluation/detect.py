@@ -273,15 +273,15 @@ def frame_record(
 
 
 def register(client, part: F.FramePart, replace: bool) -> float:
-    """``POST /references`` of the part's rescaled mesh as an STL upload (without the self-check
-    renders, which store nothing); the seconds taken."""
+    """``POST /references`` of the part's rescaled mesh as an STL upload, with the self-check a
+    cell's registration runs (it names the part's look-alikes); the seconds taken."""
     data = part.mesh.export(file_type="stl")
     began = time.perf_counter()
     answer = client.post(
         "/references",
         data={"name": part.name},
         files={"file": (f"{part.name}.stl", data, "model/stl")},
-        params={"replace": str(replace).lower(), "self_check": "false"},
+        params={"replace": str(replace).lower()},
     )
     if answer.status_code not in (200, 201):
         raise RuntimeError(f"registering {part.name} answered {answer.status_code}: {answer.text}")

@@ -2,8 +2,8 @@
 
 Two references look alike when their points are the same (one ``points_sha256``: the same
 part registered under two names), or when the registration check of one could not tell it
-from the other: its full render, or half its renders, answered as the other part, or with the
-other fitting alike. That claim
+from the other: any of its renders answered as the other part, or with the other fitting
+alike. That claim
 is stored with the reference that made it (``Reference.look_alikes``), naming the other
 part's ``points_sha256`` then, so it lapses once that part is replaced by other points; the
 relation is symmetric, so both descriptions list it.
@@ -48,21 +48,13 @@ def relation(references: Iterable[Reference]) -> dict[str, tuple[str, ...]]:
 
 
 def confused(name: str, checks: list[dict] | None) -> list[str]:
-    """The parts a registration check could not tell ``name`` from: in its full render, or in
-    half its renders or more, answered as one, or one fitting alike (``tuning.ALIKE``)."""
+    """The parts a registration check could not tell ``name`` from: any of its renders
+    answered as one, or one fitting alike (``tuning.ALIKE``). One view in four is enough: a
+    robot meets that view as often as the check drew it, and where the two do not fit alike
+    the answer stays a match (docs/decisions.md#look-alike-parts)."""
     if not checks:
         return []
-    said: dict[str, int] = defaultdict(int)
-    full = set()
-    for check in checks:
-        other = told_from(name, check)
-        if other is not None:
-            said[other] += 1
-            if check["render"] == "full":
-                full.add(other)
-    return sorted(
-        other for other, count in said.items() if other in full or 2 * count >= len(checks)
-    )
+    return sorted({other for check in checks if (other := told_from(name, check)) is not None})
 
 
 def told_from(name: str, check: dict) -> str | None:
