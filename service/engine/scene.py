@@ -305,8 +305,10 @@ class Scan:
             pending, tries = [np.flatnonzero(labels == segment)], 0
             missed: list[np.ndarray] = []  # the regions of it where nothing was found
             again: list[np.ndarray] = []  # ... that an instance took points from since
-            while (pending and tries < MAX_TRIES or again) and len(found) < most:
-                retry = not (pending and tries < MAX_TRIES)
+            while len(found) < most:
+                retry = not pending or tries >= MAX_TRIES  # the segment's own searches done
+                if retry and not again:
+                    break
                 region = again.pop(0) if retry else pending.pop(0)
                 region = region[self.free[region]]
                 if not self.worth_searching(region):
