@@ -353,13 +353,15 @@ class Engine:
         min_confidence: float | None = None,
         surroundings: bool = True,
         noise: float = 0.0,
+        rescued: int | None = None,
     ) -> Alignment:
         """Recognise and pose the object in ``points``; ``viewpoint`` is where the sensor was,
         in the cloud's frame, if known; below ``min_confidence`` the verdict is never "match".
         Without ``surroundings``, nothing is set aside (a frame's segment); ``noise``: the
-        sensor's depth noise where the part lies, if known (``Query.tolerance``)."""
+        sensor's depth noise where the part lies, if known (``Query.tolerance``); ``rescued``:
+        how many more parts are tried where none fits well (default ``rescued_parts``)."""
         query = self.query(candidates, top_k, refine, hypotheses, viewpoint)
-        query.noise = noise
+        query.noise, query.rescued = noise, rescued
         scene = np.asarray(points)
         whole = len(scene)
         if whole > (most := self.settings.align_points):  # a sample answers as the whole would

@@ -42,6 +42,7 @@ class Query:
     rng: np.random.Generator
     clock: Stopwatch
     noise: float = 0.0  # the sensor's depth noise (sigma) where the part lies, if known
+    rescued: int | None = None  # parts rescued where none fits well (None: the settings')
 
     def tolerance(self, fraction: float, scale: float) -> float:
         """A distance tolerance of ``fraction`` of a part's ``scale``, but never under

@@ -61,6 +61,7 @@ from service.engine.tuning import (
     NOISE_TOLERANCES,
     PIECE_CELLS,
     SEGMENT_POINTS,
+    SEGMENT_RESCUED,
     TEMPLATE_FIT,
     TEMPLATE_PARTS,
     TEMPLATE_POOL,
@@ -554,6 +555,9 @@ class Scan:
             "min_confidence": self.min_confidence,
             "surroundings": False,
             "noise": sigma,
+            # a segment may be a view of a part the network ranks low (a duck seen from one
+            # side): docs/decisions.md#more-parts-tried-for-a-segment
+            "rescued": SEGMENT_RESCUED,
         }
 
     @staticmethod

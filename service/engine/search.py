@@ -224,11 +224,12 @@ class Search:
 
     def rescue(self, fits: list[Fit], per_row: Counter[int], refined: list[Fit]) -> None:
         """Where no refined fit fits well (``RESCUE_BELOW``), the best ``RESCUE_EACH``
-        hypotheses of each next part (up to ``settings.rescued_parts`` parts) refined on half
-        the ICP budget, until one does; the best of them then on the rest, if it beats every
-        fully refined one. A part's right pose may verify worse than another part's before
-        refinement (docs/decisions.md#refine)."""
+        hypotheses of each next part (up to ``settings.rescued_parts`` parts, or the query's
+        ``rescued``) refined on half the ICP budget, until one does; the best of them then on
+        the rest, if it beats every fully refined one. A part's right pose may verify worse
+        than another part's before refinement (docs/decisions.md#refine)."""
         settings = self.settings
+        most = settings.rescued_parts if self.query.rescued is None else self.query.rescued
         best = max((f.score for f in refined), default=0.0)
         if best >= RESCUE_BELOW:
             return
@@ -237,7 +238,7 @@ class Search:
         for candidate in fits:
             if candidate.row in per_row or rescued.get(candidate.row, 0) == RESCUE_EACH:
                 continue
-            if candidate.row not in rescued and len(rescued) == settings.rescued_parts:
+            if candidate.row not in rescued and len(rescued) == most:
                 continue
             rescued[candidate.row] = rescued.get(candidate.row, 0) + 1
             planned.append(candidate)

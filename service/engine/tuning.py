@@ -147,6 +147,7 @@ SENSOR_NOISE = 0.0015  # the depth noise's share of the range where no support m
 SEED_SAMPLE = 2048  # seeds are spread over a sample of this many of a segment's points
 TEMPLATE_ICP_POINTS = 384  # a placed view is refined on this many of the points around it
 SEGMENT_POINTS = 4096  # the chain answers a segment from this many of its points at most
+SEGMENT_RESCUED = 8  # ... trying this many more parts where none fits (a lone cloud: 4)
 THROUGH_DOUBT = 0.1  # an instance the camera saw through more than this is doubted
 THROUGH_WEIGHT = 6.0  # a refined placed view: what the camera saw through counts this much
 DUPLICATE_GAP = 0.1  # two instances of a part this close (share of its scale) are one
