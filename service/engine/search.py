@@ -189,7 +189,7 @@ class Search:
             self.refine_all(firsts)
             per_row[plan.first] += len(firsts)
             refined += firsts
-        if plan.rescue and self.settings.rescued_parts:
+        if plan.rescue and self.rescued_parts:
             self.rescue(fits, per_row, refined)
 
     def within_budget(self, fits: list[Fit], budget: int) -> list[Fit]:
@@ -222,14 +222,19 @@ class Search:
             turn += self.refine_in_turn(planned[head:], stops, best)
         return turn + sure
 
+    @property
+    def rescued_parts(self) -> int:
+        """How many more parts ``rescue`` tries (0: none): the query's ``rescued`` where it
+        asks (a frame's segment), else ``settings.rescued_parts``."""
+        return self.settings.rescued_parts if self.query.rescued is None else self.query.rescued
+
     def rescue(self, fits: list[Fit], per_row: Counter[int], refined: list[Fit]) -> None:
         """Where no refined fit fits well (``RESCUE_BELOW``), the best ``RESCUE_EACH``
-        hypotheses of each next part (up to ``settings.rescued_parts`` parts, or the query's
-        ``rescued``) refined on half the ICP budget, until one does; the best of them then on
-        the rest, if it beats every fully refined one. A part's right pose may verify worse
-        than another part's before refinement (docs/decisions.md#refine)."""
+        hypotheses of each next part (up to ``rescued_parts`` parts) refined on half the ICP
+        budget, until one does; the best of them then on the rest, if it beats every fully
+        refined one. A part's right pose may verify worse than another part's before
+        refinement (docs/decisions.md#refine)."""
         settings = self.settings
-        most = settings.rescued_parts if self.query.rescued is None else self.query.rescued
         best = max((f.score for f in refined), default=0.0)
         if best >= RESCUE_BELOW:
             return
@@ -238,7 +243,7 @@ class Search:
         for candidate in fits:
             if candidate.row in per_row or rescued.get(candidate.row, 0) == RESCUE_EACH:
                 continue
-            if candidate.row not in rescued and len(rescued) == most:
+            if candidate.row not in rescued and len(rescued) == self.rescued_parts:
                 continue
             rescued[candidate.row] = rescued.get(candidate.row, 0) + 1
             planned.append(candidate)
