@@ -7,8 +7,10 @@ part's own face lies the rest of the part (``BEHIND_SHARE``). The first support 
 the parts rest on (a table, a bin's floor); what lies beyond it, away from the camera (the
 floor under a table, the table under a bin), is set aside with it. What lies behind a plane
 but apart from it (the floor the camera sees past a table's edge) does not count against it; a
-bin's floor lies level on the table and just above it; the largest part is the largest that
-fits in what is left once the first support is set aside (docs/decisions.md#detect).
+bin's floor lies level on the table and just above it, and a later plane is a support only
+level with an earlier one, over it (a table over the floor) or upright on it (a wall): two
+parts' faces may lie in one plane; the largest part is the largest that fits in what is left
+once the first support is set aside (docs/decisions.md#detect).
 """
 
 from __future__ import annotations
@@ -139,8 +141,10 @@ def find_supports(
         off = np.flatnonzero(others)
         on_plane = frame.points[rest[on]]
         across = reach(on_plane, plane)
+        # a bin's floor: level with the table, just above it; a later plane that is neither
+        # level, raised nor a wall may be parts' faces in one plane, however far it reaches
+        # (docs/decisions.md#parts-faces-in-one-tilted-plane)
         level = any(is_level(on_plane, plane, below, across) for below in supports)
-        wide = level or across >= largest  # a bin's floor: level with the table, just above it
         # a table over the floor, where the floor was found first (docs/decisions.md#detect)
         raised = bool(supports) and is_raised(on_plane, plane, supports[0], across)
         raised = raised and len(on) * density >= RAISED_SHARE * supports[0].points
@@ -151,9 +155,9 @@ def find_supports(
             on_plane, plane, supports, floors, across, largest, tolerance[rest[on]], cell
         )
         # the first may carry nothing (an empty table); a later one is a wall, or carries
-        # something and reaches farther than a part's face could
+        # something and lies level with an earlier one or over it
         least_over = CARRIED_POINTS if supports else 0
-        may_carry = not supports or wide or raised
+        may_carry = not supports or level or raised
         carrying = may_carry and carries(
             on_plane, frame.points[off], plane, cell, least_over, density=density
         )

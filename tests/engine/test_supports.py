@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from service.engine import supports as supports_module
 from service.engine.supports import set_aside_supports
@@ -197,3 +198,24 @@ def test_supports_found_on_a_coarser_copy_are_those_of_the_whole_frame(parts, mo
     for k in range(len(placed)):
         part = np.isin(frame.index, np.flatnonzero(shot.shows.ravel() == k))
         assert keep[part].mean() > 0.9
+
+
+def test_two_parts_faces_in_one_tilted_plane_are_not_a_support(parts):
+    # two plates lying side by side, tilted the same way, a box on one: their top faces make
+    # one plane that reaches farther than either plate and carries the box, but it is not
+    # level with the table, as a bin's floor would be, nor a wall: no support
+    plate = box((0.24, 0.15, 0.01), (0.0, 0.0, 0.0))
+    tilt = Rotation.from_euler("y", 6.0, degrees=True).as_matrix()
+    lift = np.array([0.0, 0.0, 0.03])
+    placed = [
+        (plate, tilt, tilt @ np.array([0.0, -0.076, 0.0]) + lift),
+        (plate, tilt, tilt @ np.array([0.0, 0.076, 0.0]) + lift),
+        (parts, tilt, tilt @ np.array([0.02, -0.07, 0.025]) + lift),
+    ]
+    shot = shoot(placed, [TOP, FLOOR], elevation_deg=65.0, distance=0.8)
+    scales = np.array([0.054, float(np.linalg.norm([0.12, 0.075, 0.005]))])
+    frame, keep, supports = supports_of(shot, scales)
+    assert len(supports) >= 1  # the table
+    for k in range(2):
+        mine = np.isin(frame.index, np.flatnonzero(shot.shows.ravel() == k))
+        assert keep[mine].mean() > 0.9, f"plate {k} was set aside as a support"
