@@ -112,11 +112,14 @@ class Calibration:
         Path(path).write_text(json.dumps(self.document(), indent=2) + "\n")
 
     def confidence(self, measures: dict[str, float]) -> float:
+        return float(1.0 / (1.0 + np.exp(-np.clip(self.logit(measures), -50, 50))))
+
+    def logit(self, measures: dict[str, float]) -> float:
+        """The log-odds of ``confidence``."""
         if self.eligible is not None and self.is_eligible(measures):
-            return self.eligible.confidence(measures)
+            return self.eligible.logit(measures)
         values = np.array([measures[name] for name in self.features])
-        z = float(((values - self.mean) / self.spread) @ self.weights + self.bias)
-        return float(1.0 / (1.0 + np.exp(-np.clip(z, -50, 50))))
+        return float(((values - self.mean) / self.spread) @ self.weights + self.bias)
 
     def is_eligible(self, measures: dict[str, float]) -> bool:
         """Whether ``eligible`` judges these measures: each at least its ``eligible_at``."""

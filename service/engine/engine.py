@@ -732,6 +732,24 @@ class Engine:
                 )
         answer.reasons = reasons + self._doubts(answer, values, one_face, flat, query)
 
+    def seen_as(self, answer: Alignment, coverage: float) -> float | None:
+        """The chain's confidence in ``answer`` had it measured ``coverage`` (its logit moved
+        by as much as that moves the calibration's): in a frame, the share of the part the
+        camera shows of what nothing nearer hides (docs/decisions.md#what-the-frame-shows)."""
+        if self.calibration is None or answer.confidence is None:
+            return answer.confidence
+        before, after = (
+            self.calibration.logit(
+                confidence.measures(
+                    answer.fit, share, answer.runner_up, answer.alike, answer.points,
+                    answer.size_ratio, True,
+                )
+            )
+            for share in (answer.coverage, coverage)
+        )  # fmt: skip
+        chosen = min(max(answer.confidence, 1e-6), 1 - 1e-6)
+        return float(1 / (1 + np.exp(-(np.log(chosen / (1 - chosen)) + after - before))))
+
     def _two_poses(self, answer: Alignment, values: dict, threshold: float) -> None:
         """A refused answer that only the other pose it was measured against (``alike``)
         keeps from a "match": the view cannot tell the two apart, so that pose is listed as an
@@ -844,6 +862,7 @@ class Engine:
         """The search of a frame's points off its supports (``service.engine.scene``)."""
         return Scan(
             self.align,
+            self.seen_as,
             self.settings.tolerance,
             self.scene_calibration,
             query,

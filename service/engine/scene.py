@@ -190,14 +190,16 @@ def evidence(
     viewpoint: np.ndarray,
     camera: DepthImage | None,
     tolerance: float,
+    seen_as: Callable[[Alignment, float], float | None] | None = None,
 ) -> dict[str, float]:
     """What a frame says of an instance (``confidence.SCENE_FEATURES``): the chain's
-    confidence for its points (as a logit), fit, coverage and margin; of what the camera
+    confidence for its points (as a logit; ``seen_as``: had it measured the share the camera
+    shows where that is more than its coverage and the camera saw through no more than
+    ``THROUGH_DOUBT`` of it), fit, coverage and margin; of what the camera
     should see of the part at its pose, the share the frame's depth shows (of what nothing
     nearer hides) and the share the camera saw through; the share of its segment's points it
     explains (and, ``ELIGIBLE_FEATURES``, log10 of the share it leaves plus 0.01), and how
     many (log10)."""
-    chosen = min(max(answer.confidence or 0.0, 1e-4), 1 - 1e-4)
     toward = (viewpoint - answer.translation) @ answer.rotation  # the camera, model frame
     view = int(entry.views.nearest(toward[None])[0])
     expected = entry.surface.points[entry.expected[view]] @ answer.rotation.T + answer.translation
@@ -209,6 +211,12 @@ def evidence(
         seen, through = float(shown.sum() / counted), float(behind.sum() / counted)
     else:
         seen = answer.coverage
+    # the chain counts what neighbours hide as missed; where the camera saw through little of
+    # the part, the frame tells that from what is not there (docs/decisions.md#what-the-frame-shows)
+    chain = answer.confidence
+    if seen_as is not None and camera is not None and through <= THROUGH_DOUBT:
+        chain = seen_as(answer, max(seen, answer.coverage))
+    chosen = min(max(chain or 0.0, 1e-4), 1 - 1e-4)
     score = answer.fit * answer.coverage
     explained = claimed / max(region, 1)
     return {
@@ -253,6 +261,7 @@ class Scan:
     its camera saw, and the search of its segments for instances."""
 
     align: Callable[..., Alignment]  # Engine.align
+    seen_as: Callable[[Alignment, float], float | None]  # Engine.seen_as
     tolerance: float  # the engine's fit and coverage tolerance, share of a part's scale
     calibration: Calibration | None  # the scene calibration, if fitted
     query: Query
@@ -641,7 +650,14 @@ class Scan:
             return None
         instance = Instance(answer, entry, claimed, distance)
         instance.evidence = evidence(
-            answer, entry, inside, len(region), self.frame.viewpoint, self.camera, tolerance
+            answer,
+            entry,
+            inside,
+            len(region),
+            self.frame.viewpoint,
+            self.camera,
+            tolerance,
+            self.seen_as,
         )
         self.judge(instance)
         doubted = instance.answer.verdict != "match"

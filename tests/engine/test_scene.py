@@ -15,11 +15,18 @@ from scipy.spatial import cKDTree
 from service.engine.confidence import Calibration
 from service.engine.engine import Engine
 from service.engine.mapping import Mapper
+from service.engine.projection import DepthImage
 from service.engine.sampling import sample_surface_faces
-from service.engine.scene import Instance, settle_claims
+from service.engine.scene import Instance, evidence, settle_claims
 from service.engine.segments import segments
 from service.engine.supports import set_aside_supports
-from service.engine.tuning import MIN_SEGMENT, SEGMENT_POINTS, THIN_PER_SCALE
+from service.engine.tuning import (
+    CLAIM_TOLERANCE,
+    MIN_SEGMENT,
+    SEGMENT_POINTS,
+    THIN_PER_SCALE,
+    THROUGH_DOUBT,
+)
 from service.settings import Settings
 from tests.frames import frame_of, resting, shoot, spin, table
 
@@ -524,3 +531,34 @@ def test_a_part_the_frame_holds_several_of_is_judged_as_told(engine):
         found = judged.detect(frame).detections
         assert [d.answer.label for d in found] == ["box"] * 3
         assert sorted(d.answer.verdict for d in found) == sorted(verdicts)
+
+
+def test_what_nearer_parts_hide_is_not_missed_by_the_chain(engine, one_box):
+    # a third of the box hidden by something nearer (its pixels' points brought a fifth of
+    # the way to the camera): the chain, asked about what is left, counts the hidden third as
+    # missed; the frame shows it is hidden, so the chain's confidence in a frame rises
+    entry, shot = one_box
+    hidden = (shot.shows == 0) & (np.arange(shot.shows.shape[1]) < box_column(shot, 0.3))
+    points = shot.points.copy()
+    points[hidden] *= 0.8
+    frame = frame_of(replace(shot, points=points))
+    seen = shot.points[(shot.shows == 0) & ~hidden].astype(np.float64)
+    answer = engine.align(seen, viewpoint=np.zeros(3), surroundings=False)
+    assert answer.label == "box"
+    tolerance = CLAIM_TOLERANCE * engine.settings.tolerance * entry.reference.scale
+    chain = np.log(answer.confidence / (1 - answer.confidence))
+    said = evidence(
+        answer, entry, len(seen), len(seen), frame.viewpoint, DepthImage.of(frame), tolerance,
+        engine.seen_as,
+    )  # fmt: skip
+    assert said["seen"] > answer.coverage + 0.1 and said["through"] <= THROUGH_DOUBT
+    assert said["chain"] > chain + 0.5
+    unorganized = evidence(
+        answer, entry, len(seen), len(seen), frame.viewpoint, None, tolerance, engine.seen_as
+    )
+    assert unorganized["chain"] == pytest.approx(chain)
+
+
+def box_column(shot, share: float) -> float:
+    """The column left of which ``share`` of the pixels showing the shot's first part lie."""
+    return float(np.quantile(np.nonzero(shot.shows == 0)[1], share))
