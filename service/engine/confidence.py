@@ -112,7 +112,7 @@ class Calibration:
         Path(path).write_text(json.dumps(self.document(), indent=2) + "\n")
 
     def confidence(self, measures: dict[str, float]) -> float:
-        return float(1.0 / (1.0 + np.exp(-np.clip(self.logit(measures), -50, 50))))
+        return from_log_odds(self.logit(measures))
 
     def logit(self, measures: dict[str, float]) -> float:
         """The log-odds of ``confidence``."""
@@ -124,6 +124,17 @@ class Calibration:
     def is_eligible(self, measures: dict[str, float]) -> bool:
         """Whether ``eligible`` judges these measures: each at least its ``eligible_at``."""
         return meets(measures, self.eligible_at)
+
+
+def log_odds(probability: float, least: float = 0.0) -> float:
+    """The log-odds of ``probability``, held ``least`` away from 0 and 1."""
+    held = min(max(probability, least), 1 - least)
+    return float(np.log(held / (1 - held)))
+
+
+def from_log_odds(z: float) -> float:
+    """The probability of log-odds ``z`` (``log_odds``' inverse)."""
+    return float(1.0 / (1.0 + np.exp(-np.clip(z, -50, 50))))
 
 
 def meets(measures: dict[str, float], floors: dict[str, float]) -> bool:

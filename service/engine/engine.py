@@ -699,15 +699,7 @@ class Engine:
         walls may hide what tells parts apart: a "match" needs ``BIN_ACCEPT`` at least."""
         entry = query.snapshot.entries[answer.label]
         one_face = flat < FLAT <= entry.flatness
-        values = confidence.measures(
-            answer.fit,
-            answer.coverage,
-            answer.runner_up,
-            answer.alike,
-            answer.points,
-            answer.size_ratio,
-            query.viewpoint is not None,
-        )
+        values = self._measures(answer, query.viewpoint is not None)
         if self.calibration is None:
             answer.verdict, answer.confidence = "uncertain", None
             reasons = ["no confidence calibration is loaded (confidence.json)"]
@@ -735,20 +727,27 @@ class Engine:
     def seen_as(self, answer: Alignment, coverage: float) -> float | None:
         """The chain's confidence in ``answer`` had it measured ``coverage`` (its logit moved
         by as much as that moves the calibration's): in a frame, the share of the part the
-        camera shows of what nothing nearer hides (docs/decisions.md#what-the-frame-shows)."""
+        camera shows of what nothing nearer hides (docs/decisions.md#what-the-frame-shows).
+        A frame's asks are told the viewpoint."""
         if self.calibration is None or answer.confidence is None:
             return answer.confidence
-        before, after = (
-            self.calibration.logit(
-                confidence.measures(
-                    answer.fit, share, answer.runner_up, answer.alike, answer.points,
-                    answer.size_ratio, True,
-                )
-            )
-            for share in (answer.coverage, coverage)
-        )  # fmt: skip
-        chosen = min(max(answer.confidence, 1e-6), 1 - 1e-6)
-        return float(1 / (1 + np.exp(-(np.log(chosen / (1 - chosen)) + after - before))))
+        moved = self.calibration.logit(self._measures(answer, True, coverage))
+        moved -= self.calibration.logit(self._measures(answer, True))
+        return confidence.from_log_odds(confidence.log_odds(answer.confidence, 1e-6) + moved)
+
+    @staticmethod
+    def _measures(answer: Alignment, told: bool, coverage: float | None = None) -> dict:
+        """The calibration's measures of ``answer`` (``confidence.measures``); ``coverage``:
+        in place of its own."""
+        return confidence.measures(
+            answer.fit,
+            answer.coverage if coverage is None else coverage,
+            answer.runner_up,
+            answer.alike,
+            answer.points,
+            answer.size_ratio,
+            told,
+        )
 
     def _two_poses(self, answer: Alignment, values: dict, threshold: float) -> None:
         """A refused answer that only the other pose it was measured against (``alike``)

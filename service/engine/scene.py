@@ -30,7 +30,7 @@ import numpy as np
 
 from service.engine.alignment import alignment_error
 from service.engine.answer import Alignment, Detection, SceneAnswer
-from service.engine.confidence import Calibration
+from service.engine.confidence import Calibration, from_log_odds, log_odds
 from service.engine.entry import Entry
 from service.engine.frame import Frame
 from service.engine.icp import Start, icp_many
@@ -216,11 +216,10 @@ def evidence(
     chain = answer.confidence
     if seen_as is not None and camera is not None and through <= THROUGH_DOUBT:
         chain = seen_as(answer, max(seen, answer.coverage))
-    chosen = min(max(chain or 0.0, 1e-4), 1 - 1e-4)
     score = answer.fit * answer.coverage
     explained = claimed / max(region, 1)
     return {
-        "chain": float(np.log(chosen / (1 - chosen))),
+        "chain": log_odds(chain or 0.0, 1e-4),
         "fit": answer.fit,
         "coverage": answer.coverage,
         "margin": score - answer.runner_up,
@@ -234,7 +233,7 @@ def evidence(
 
 def chain_confidence(said: dict[str, float]) -> float:
     """The chain's own confidence for an instance's points, from its ``evidence``."""
-    return float(1 / (1 + np.exp(-said["chain"])))
+    return from_log_odds(said["chain"])
 
 
 def match_floors() -> dict[str, float]:
@@ -242,7 +241,7 @@ def match_floors() -> dict[str, float]:
     own confidence ``CHAIN_AGREES`` (its logit) and ``MATCH_POINTS`` points (log10); a
     detection calibration's fit on such instances is fitted on these (``eligible_at``)."""
     return {
-        "chain": float(np.log(CHAIN_AGREES / (1 - CHAIN_AGREES))),
+        "chain": log_odds(CHAIN_AGREES),
         "points": float(np.log10(MATCH_POINTS)),
     }
 
