@@ -467,8 +467,9 @@ class Scan:
 
     def instance(self, region: np.ndarray, place: bool = True) -> Instance | None:
         """The chain's answer for the points ``region`` as an instance claiming the free
-        points near its surface; else the likeliest parts' views placed over the region, and
-        the chain asked about the points the best explains. None if neither explains enough."""
+        points near its surface; else, among few plausible parts, the likeliest parts' views
+        placed over the region, and the chain asked about the points the best explains. None
+        if neither explains enough."""
         points = self.frame.points[region]
         sigma = self.noise.at(points, self.frame.viewpoint)
         answer = self.answer_for(points, sigma)
@@ -480,7 +481,7 @@ class Scan:
         if not place or not self.may_hold_several(points, answer):
             return None
         spacing = self.spacing
-        for entry in self.template_parts(points, spacing, answer):
+        for entry in self.template_parts(points, spacing):
             tolerance = self.part_tolerance(entry, sigma)
             poses = place_views(
                 entry,
@@ -588,18 +589,20 @@ class Scan:
         candidates, kwargs = self.asking(sigma)
         return self.align(points, candidates, **kwargs)
 
-    def template_parts(self, points: np.ndarray, spacing: float, answer: Alignment) -> list[Entry]:
+    def template_parts(self, points: np.ndarray, spacing: float) -> list[Entry]:
         """The parts to place over a segment: of those that fit inside it and are not far
-        smaller (``TEMPLATE_SIZES``), the chain's candidates for it (every allowed part,
-        where few are), the ``TEMPLATE_PARTS`` whose views fit it best."""
+        smaller (``TEMPLATE_SIZES``), the ``TEMPLATE_PARTS`` whose views fit it best; none
+        where more than ``TEMPLATE_POOL`` do. Among many parts the coarse ranking seldom picks
+        the right one, and a placement and the ask after it cost two asks: a frame told its
+        parts, or served by a small gallery, places them
+        (docs/decisions.md#placed-views-among-few-parts)."""
         size = radius(points)
         low, high = TEMPLATE_SIZES
         snapshot = self.query.snapshot
         labels = snapshot.classifier.labels
         rows = [r for r in self.query.allowed if low * size <= snapshot.scales[r] <= high * size]
         if len(rows) > TEMPLATE_POOL:
-            named = {c.label for c in answer.candidates} | {answer.label}
-            rows = [r for r in rows if labels[r] in named]
+            return []
         entries = [snapshot.entries[labels[r]] for r in rows]
         return likeliest(
             entries,

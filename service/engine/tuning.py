@@ -158,7 +158,7 @@ MAX_JOINS = 6  # ... and only so many times a frame
 TEMPLATE_FIT = 0.8  # a region whose best part explains less of it may hold several ...
 WIDER = 1.25  # ... as may one wider than this many times that part's scale
 FINISH_POINTS, FINISH_ITERATIONS = 1024, 20  # an instance's pose finished on its claim
-TEMPLATE_POOL = 8  # more parts than this plausible: only the chain's candidates are placed
+TEMPLATE_POOL = 8  # more parts than this plausible: no views are placed
 
 # --- Symmetry: finding a part's turns (docs/decisions.md#symmetry) ---------------------------
 TOLERANCE = 0.015  # share of the scale

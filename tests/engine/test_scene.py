@@ -420,6 +420,25 @@ def test_two_touching_boxes_are_found_whatever_the_search_draws(engine):
     assert both >= 8, f"both boxes, and nothing else, under {both} of 10 seeds"
 
 
+def test_views_are_placed_over_a_segment_only_among_few_plausible_parts(engine):
+    # two touching boxes, one segment: every part of a plausible size is placed while there
+    # are at most TEMPLATE_POOL of them; among more, none is: the coarse ranking seldom picks
+    # the right one, and a placement and its ask cost two asks
+    # (docs/decisions.md#placed-views-among-few-parts)
+    box = trimesh.creation.box((0.08, 0.06, 0.04))
+    shot = shoot([(box, *resting(box, np.eye(3), 0.0, 0.06 * k)) for k in range(2)], table())
+    few = {f"box-{k}": trimesh.creation.box((0.08 + 0.004 * k, 0.06, 0.04)) for k in range(2)}
+    many = {f"box-{k}": trimesh.creation.box((0.08 + 0.004 * k, 0.06, 0.04)) for k in range(9)}
+    for meshes, expected in ((few, sorted(few)), (many, [])):
+        probe = registered(Engine(engine.mapper, SETTINGS.engine, engine.calibration), meshes)
+        scan, labels, shows = scan_of(probe, shot)
+        region = np.flatnonzero(labels == np.argmax(np.bincount(labels)))
+        assert {0, 1} <= set(shows[region].tolist()), "the two boxes are not one segment"
+        points = scan.frame.points[region]
+        chosen = scan.template_parts(points, scan.spacing)
+        assert sorted(e.reference.name for e in chosen) == expected
+
+
 def test_a_pair_of_failed_segments_claimed_since_is_not_joined(engine):
     # two boxes, each its own segment, both failed; an instance found since (by the fragments
     # or an earlier join) claimed every point of both: their join is skipped, nothing asked.
