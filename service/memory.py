@@ -11,6 +11,13 @@ glibc keeps what those frees leave in its arenas for later use, and returns litt
 - Free pages between live blocks stay resident. ``release_free_heap`` (``malloc_trim``)
   hands them back; the catalog calls it after each change (a few milliseconds).
 
+While a camera frame is searched (``frame_heap``), both thresholds are raised: a frame's
+arrays (300,000 points: 2-7 MB each, dozens a frame) would otherwise each get fresh pages,
+zeroed and faulted in, unmapped again when freed, and the heap's top handed back whenever
+128 KiB of it was free; the engine ran 1.6-2 times slower in the service than in a plain
+process. Once no frame is searched the thresholds are restored and the heap trimmed
+(docs/decisions.md#the-heaps-thresholds).
+
 Measured (scripts/load.py, docs/operations.md#memory): a growing gallery cost 2.2 MiB of
 resident memory a reference, where a reference holds 0.7 MB; with the trim alone, three
 changes a second beside two aligning threads still crept up by 1.4 MiB a minute, with both
@@ -22,9 +29,15 @@ from __future__ import annotations
 import ctypes
 import functools
 import logging
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 
-M_MMAP_THRESHOLD = -3  # glibc's mallopt parameter
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters
 MMAP_THRESHOLD = 128 * 1024  # bytes: glibc's own starting value, kept from moving
+TRIM_THRESHOLD = 128 * 1024  # bytes: glibc's own, which a fixed mmap threshold keeps
+FRAME_MMAP_THRESHOLD = 32 << 20  # while a frame is searched: glibc's own ceiling for it ...
+FRAME_TRIM_THRESHOLD = 256 << 20  # ... and the heap's free top kept for the next arrays
 
 log = logging.getLogger(__name__)
 
@@ -54,3 +67,33 @@ def release_free_heap() -> bool:
         return False
     libc.malloc_trim(0)  # its result says whether anything was released, not whether it worked
     return True
+
+
+_frames = 0  # frames being searched now, in this process
+_frames_lock = threading.Lock()
+
+
+@contextmanager
+def frame_heap() -> Iterator[None]:
+    """While a camera frame is searched, its arrays come from the heap and are reused; once no
+    frame is (in any thread), the thresholds are fixed again and the heap trimmed (glibc only;
+    elsewhere nothing changes)."""
+    global _frames
+    libc = _glibc()
+    if libc is None:
+        yield
+        return
+    with _frames_lock:
+        _frames += 1
+        if _frames == 1:
+            libc.mallopt(M_MMAP_THRESHOLD, FRAME_MMAP_THRESHOLD)
+            libc.mallopt(M_TRIM_THRESHOLD, FRAME_TRIM_THRESHOLD)
+    try:
+        yield
+    finally:
+        with _frames_lock:
+            _frames -= 1
+            if _frames == 0:
+                libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD)
+                libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD)
+                libc.malloc_trim(0)

@@ -180,7 +180,10 @@ def _job(method: str, args: tuple, kwargs: dict):
     """The engine's ``method`` on the gallery as the store holds it now."""
     global _seen
     _seen = _follow(_catalog, _seen)
-    return getattr(_catalog.engine, method)(*args, **kwargs)
+    if method != "detect":
+        return getattr(_catalog.engine, method)(*args, **kwargs)
+    with memory.frame_heap():  # a frame's arrays reused (docs/decisions.md#the-heaps-thresholds)
+        return _catalog.engine.detect(*args, **kwargs)
 
 
 def _follow(catalog: Catalog, seen: int | None) -> int | None:

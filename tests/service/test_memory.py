@@ -96,3 +96,42 @@ def test_release_is_safe_to_call_at_any_time():
     assert release_free_heap() is GLIBC
     assert release_free_heap() is GLIBC
     assert fix_mmap_threshold() is GLIBC  # and so is fixing the threshold again
+
+
+# While a frame is searched, 1 MiB blocks come from the heap and stay there when freed (the
+# next array reuses them); once the frame is done the heap is trimmed, and the next blocks that
+# no freed one holds get pages of their own again (docs/decisions.md#the-heaps-thresholds).
+FRAME = (
+    CHILD
+    + """
+from service.memory import fix_mmap_threshold, frame_heap
+
+def churn(mib):
+    blocks, pins = [], []
+    for _ in range(128 // mib):
+        blocks.append(bytearray(mib << 20))
+        pins.append(bytearray(100_000))
+    before = rss_mib()
+    del blocks
+    return pins, before - rss_mib()
+
+fix_mmap_threshold()
+with frame_heap():
+    pins, freed_in_frame = churn(1)
+    before_trim = rss_mib()
+after_frame = before_trim - rss_mib()
+more, freed_after = churn(2)  # larger than the heap's freed blocks
+print(json.dumps({"in_frame": freed_in_frame, "trimmed": after_frame, "after": freed_after}))
+"""
+)
+
+
+@pytest.mark.skipif(not GLIBC, reason="glibc only")
+def test_a_frames_arrays_stay_in_the_heap_until_the_frame_is_done():
+    done = subprocess.run(
+        [sys.executable, "-c", FRAME], capture_output=True, text=True, check=True, timeout=60
+    )
+    result = json.loads(done.stdout)
+    assert result["in_frame"] < 32  # of 128 MiB freed: kept for the next arrays
+    assert result["trimmed"] > 96  # handed back once the frame is done
+    assert result["after"] > 96  # and the fixed threshold is back: pages of their own
