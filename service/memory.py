@@ -96,4 +96,4 @@ def frame_heap() -> Iterator[None]:
             if _frames == 0:
                 libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD)
                 libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD)
-                libc.malloc_trim(0)
+                release_free_heap()

@@ -26,6 +26,7 @@ from typing import Any
 
 from service import memory
 from service.api import logs, startup
+from service.engine.engine import Engine
 from service.errors import StoreUnavailable
 from service.gallery.catalog import Catalog
 from service.settings import Settings
@@ -116,7 +117,7 @@ class EngineProcesses:
                 self._seen = _follow(self.catalog, self._seen)
                 if method == "detect":  # the idle workers answer its segments' first asks
                     kwargs = {**kwargs, "submit": self._submitter(pool)}
-            return getattr(self.catalog.engine, method)(*args, **kwargs)
+            return _call(self.catalog.engine, method, args, kwargs)
         finally:
             with self._lock:
                 self._running -= 1
@@ -180,10 +181,16 @@ def _job(method: str, args: tuple, kwargs: dict):
     """The engine's ``method`` on the gallery as the store holds it now."""
     global _seen
     _seen = _follow(_catalog, _seen)
+    return _call(_catalog.engine, method, args, kwargs)
+
+
+def _call(engine: Engine, method: str, args: tuple, kwargs: dict):
+    """The engine's ``method``, here or in a worker; a frame's detection with the heap's
+    thresholds raised (docs/decisions.md#the-heaps-thresholds)."""
     if method != "detect":
-        return getattr(_catalog.engine, method)(*args, **kwargs)
-    with memory.frame_heap():  # a frame's arrays reused (docs/decisions.md#the-heaps-thresholds)
-        return _catalog.engine.detect(*args, **kwargs)
+        return getattr(engine, method)(*args, **kwargs)
+    with memory.frame_heap():
+        return engine.detect(*args, **kwargs)
 
 
 def _follow(catalog: Catalog, seen: int | None) -> int | None:

@@ -8,7 +8,6 @@ from typing import Annotated, Any
 import numpy as np
 from fastapi import APIRouter, Query, Request
 
-from service import memory
 from service.api.auth import ReadAccess
 from service.api.dependencies import LimiterDep, ProcessesDep, SettingsDep
 from service.api.engine_processes import EngineProcesses
@@ -132,15 +131,14 @@ def _detect(
     roi = None if options.roi is None else (np.array(options.roi.min), np.array(options.roi.max))
     # the search stops in time to answer with what it found, before the request's budget
     deadline = time.monotonic() + SEARCH_SHARE * limits.request_timeout_s
-    with memory.frame_heap():  # a frame's arrays reused (docs/decisions.md#the-heaps-thresholds)
-        scene = engine.detect(
-            frame,
-            options.candidates,
-            options.max_instances,
-            roi,
-            options.min_confidence,
-            deadline=deadline,
-        )
+    scene = engine.detect(
+        frame,
+        options.candidates,
+        options.max_instances,
+        roi,
+        options.min_confidence,
+        deadline=deadline,
+    )
     return detect_response(scene)
 
 
