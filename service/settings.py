@@ -71,6 +71,10 @@ class EngineSettings(BaseModel):
     # the mapped pairs are searched only after single views whose best refined fit x coverage
     # reaches this (docs/decisions.md#at-camera-scale); 0: always
     mapped_from: float = Field(0.7, ge=0, le=1)
+    # a cloud no camera told of that hides at least this share of its points from every side
+    # (visibility.hidden_share) is a whole part's: no single views are searched for it
+    # (docs/decisions.md#a-whole-parts-cloud); 1: always searched
+    whole_hidden: float = Field(0.17, ge=0, le=1)
     refine_best: int = Field(4, ge=1)  # hypotheses refined with ICP (at most 2 a part)
     icp_iterations: int = Field(12, ge=1)
     # when no refined hypothesis fits well, the best two of this many more parts are refined

@@ -74,6 +74,7 @@ from service.engine.tuning import (
     SEVERAL,
     THIN_PER_SCALE,
     VIEW_POINTS,
+    WHOLE_FINISHED,
     WHOLE_REFINED,
     WHOLE_SCREENED,
 )
@@ -86,7 +87,7 @@ from service.engine.views import (
     sample_spacing,
     splat_visible,
 )
-from service.engine.visibility import random_camera, visible_points
+from service.engine.visibility import hidden_share, random_camera, visible_points
 from service.errors import EmptyGallery, UnknownReference
 from service.settings import EngineSettings
 
@@ -448,7 +449,7 @@ class Engine:
         if not fits:  # nothing of a plausible size: no search over the wrong sizes
             return self._unanswered(query.snapshot, query.allowed, observed.points, ranking.scores)
         fits.sort(key=lambda f: -f.score)
-        if query.refine and fits[0].score >= self.settings.hopeless:
+        if query.refine and fits[0].score >= self._finished_from(observed):
             fits = search.finish(fits)  # 7, the best pose
         return self.decide(query, observed, ranking, search, fits)  # 8
 
@@ -502,6 +503,15 @@ class Engine:
         refined = [f.score for f in fits if f.refined]  # none: nothing to judge it by
         return bool(refined) and max(refined) < floor
 
+    def _finished_from(self, observed: Observed) -> float:
+        """The least fit x coverage whose pose is finished (flips, near-symmetries): the
+        search's ``hopeless``; for a whole part's cloud, ``WHOLE_FINISHED`` too. Its principal
+        axes were verified every way round: the flips lift a right part's pose from a wrong
+        sign's 0.7, never another part's (docs/decisions.md#a-whole-parts-cloud)."""
+        if observed.whole:
+            return max(self.settings.hopeless, WHOLE_FINISHED)
+        return self.settings.hopeless
+
     def _whole_part(
         self, query: Query, observed: Observed, ranking: Ranking, fits: list[Fit]
     ) -> Plan | None:
@@ -518,7 +528,7 @@ class Engine:
         shortlist, from every rendered view of each: what one camera's view needs. Parts
         only the views propose get their whole-part hypotheses too; more parts are rescued
         where none fits well."""
-        if "views" not in query.sources:
+        if "views" not in query.sources or self._whole_cloud(query, observed):
             return None
         shortlist = ranking.shortlist
         count = query.top_k or self.settings.view_candidates
@@ -532,6 +542,17 @@ class Engine:
         whole = ["principal-axes"] if "principal-axes" in query.sources else []
         planned = {row: ["views", *(whole if row not in shortlist else [])] for row in rows}
         return Plan(planned, self.settings.refine_best, ranking.first, rescue=True)
+
+    def _whole_cloud(self, query: Query, observed: Observed) -> bool:
+        """Whether the observation, told of no camera, is a whole part's cloud rather than one
+        camera's view: it hides ``settings.whole_hidden`` of its points or more from every
+        side. Its single views would pose another part, or the same part no better than its
+        principal axes did (docs/decisions.md#a-whole-parts-cloud)."""
+        if query.viewpoint is not None or self.settings.whole_hidden >= 1:
+            return False
+        rng = np.random.default_rng(self.settings.seed)  # the search's own draws unchanged
+        observed.whole = hidden_share(observed.points, rng) >= self.settings.whole_hidden
+        return observed.whole
 
     def _more_views(
         self, query: Query, observed: Observed, ranking: Ranking, fits: list[Fit]

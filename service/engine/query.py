@@ -62,6 +62,7 @@ class Observed:
     mapped: np.ndarray | None = None  # (n, 2) their 2-D coordinates (2. map)
     grid: np.ndarray | None = None  # (64, 64) the grid of those (3. grid)
     nearest_views: list[int] = field(default_factory=list)  # rows, by their views' likeness
+    whole: bool = False  # a whole part's cloud, searched without its single views
 
 
 @dataclass(frozen=True)

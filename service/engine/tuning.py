@@ -62,6 +62,12 @@ PER_PART = 2  # hypotheses refined of one part in a pass
 FIRST_REFINED = 1  # hypotheses of eq. (4)'s sure first choice refined in any case
 RESCUE_BELOW = 0.7  # no refined fit x coverage this high: more parts are rescued
 RESCUE_EACH = 2  # hypotheses refined of each rescued part
+# a cloud's hidden share (visibility.hidden_share): of this many points, cells this many point
+# spacings wide, nearer by this many spacings (docs/decisions.md#a-whole-parts-cloud)
+HIDDEN_POINTS, HIDDEN_CELL, HIDDEN_DEPTH = 512, 1.5, 4.0
+# a whole part's cloud fitting less than this after its principal axes is not finished (flips,
+# near-symmetries): right ones reached it at 0.70-0.995, others at 0.31-0.66 (measured)
+WHOLE_FINISHED = 0.6
 MORE_VIEWS_BELOW = 0.6  # no refined fit x coverage this high: more parts' views are searched
 SURFACE_NEIGHBOURS = 8  # a sample's neighbours searched when correcting the field's answer
 BEHIND = 1.0  # a point more sample spacings than this behind a tangent plane is not on it

@@ -128,7 +128,8 @@ def test_where_no_part_fits_well_the_next_parts_views_are_searched(engine_with):
 
     rows = {}
     for more in (0, 4):
-        engine = engine_with(more_views=more, hopeless=0.01, mapped_from=0.99)
+        # a blob hides much of itself from every side: searched as a view all the same
+        engine = engine_with(more_views=more, hopeless=0.01, mapped_from=0.99, whole_hidden=1.0)
         query, observed, fits = searched(engine, blob())
         assert max(f.score for f in fits if f.refined) < MORE_VIEWS_BELOW  # none fits well
         rows[more] = {f.row for f in fits}
@@ -149,7 +150,7 @@ def test_poses_refined_together_end_their_turn_where_one_by_one_would(engine_wit
     from service.engine.grid import grid
     from service.engine.search import Search
 
-    engine = engine_with()
+    engine = engine_with(whole_hidden=1.0)  # a whole cloud's single views: many fits
     cloud, _ = posed(references[3], 2048, 5)
     query = engine.query(None, None, True, None, None)
     observed = engine.normalise(query, engine.set_aside(query, cloud)[0])
@@ -175,3 +176,48 @@ def test_poses_refined_together_end_their_turn_where_one_by_one_would(engine_wit
     for mine, before in zip(together[expected + 1 :], fits[expected + 1 :], strict=True):
         assert not mine.refined
         np.testing.assert_array_equal(mine.rotation, before.rotation)
+
+
+def view_of(reference, seed: int) -> np.ndarray:
+    """One camera's view of ``reference``'s points: those it sees from a random side, ten of
+    its radii away (the evaluation's partial views)."""
+    from service.engine.visibility import random_camera, visible_points
+
+    rng = np.random.default_rng(seed)
+    points = resample(reference.points, reference.normals, 4096, rng)
+    return points[visible_points(points, random_camera(points, 10.0, rng))]
+
+
+@needs_model
+def test_a_whole_parts_cloud_hides_much_of_itself_from_every_side_and_a_view_none(references):
+    from service.engine.visibility import hidden_share
+
+    rng = np.random.default_rng(0)
+    for k, reference in enumerate(references[:5]):
+        whole, _ = posed(reference, 2048, k)
+        assert hidden_share(whole, rng) >= SETTINGS.engine.whole_hidden, reference.name
+        assert hidden_share(view_of(reference, k), rng) < 0.1, reference.name  # 0-0.07 here
+
+
+@needs_model
+def test_a_whole_cloud_of_a_part_not_registered_is_refused_without_its_single_views(
+    references, engine_with
+):
+    """A whole cloud no registered part fits is not searched as one camera's view (no refined
+    fit of the rendered views), and is refused as it was; a view of a registered part, told
+    of no camera, is still searched and found."""
+    left_out = references[-1]
+    cloud, _ = posed(left_out, 2048, 3)
+    sources = {}
+    for whole_hidden in (SETTINGS.engine.whole_hidden, 1.0):
+        engine = engine_with(whole_hidden=whole_hidden)
+        engine.load(references[:-1])
+        answer = engine.align(cloud)
+        assert answer.verdict != "match"
+        _, _, fits = searched(engine, cloud)
+        sources[whole_hidden] = {f.source for f in fits if f.refined}
+    assert "views" in sources[1.0] and "views" not in sources[SETTINGS.engine.whole_hidden]
+    engine = engine_with()
+    reference = references[1]
+    answer = engine.align(view_of(reference, 7))
+    assert answer.label == reference.name and answer.verdict == "match"
