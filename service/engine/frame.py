@@ -70,15 +70,15 @@ class Frame:
     def _pixel_angle(self) -> float:
         if self.shape is None or len(self) < 2:
             return spacing_angle(self.points, self.viewpoint)
-        index, points = self.index, self.points
+        index, points, ranges = self.index, self.points, self.ranges()
         if np.any(index[1:] < index[:-1]):  # a frame's points come in pixel order: no sort
             order = np.argsort(index)
-            index, points = index[order], points[order]
+            index, points, ranges = index[order], points[order], ranges[order]
         beside = np.diff(index) == self.step
         if beside.sum() < 16:
             return spacing_angle(self.points, self.viewpoint)
         rays = points - self.viewpoint
-        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        rays /= ranges[:, None]  # each ray's length: its range, computed once a frame
         # every point with the next (contiguous slices, no gather), then the neighbours' pairs
         cosine = np.einsum("ij,ij->i", rays[:-1], rays[1:])[beside]
         return float(np.median(np.arccos(np.clip(cosine, -1.0, 1.0)))) / self.step

@@ -31,6 +31,17 @@ def radius(points: np.ndarray, centroid: np.ndarray | None = None) -> float:
     return float(np.sqrt(((points - centre) ** 2).sum(axis=1).max()))
 
 
+def radius_at_least(points: np.ndarray, stride: int = 16) -> float:
+    """A lower bound of ``radius``, cheap on a frame of many points: half the widest span of
+    every ``stride``-th point along an axis (two points lie within twice the radius of each
+    other, whatever the centre)."""
+    sample = points[::stride]
+    if not len(sample):
+        return 0.0
+    low, high = sample[sample.argmin(axis=0)], sample[sample.argmax(axis=0)]  # each axis's
+    return float(np.linalg.norm(high - low, axis=1).max()) / 2
+
+
 # All points (nearly) the same: a cloud whose radius is below this share of its coordinates'
 # magnitude (at least 1 unit) lies within a few float32 steps of one point
 MIN_RELATIVE_RADIUS = 1e-6

@@ -13,7 +13,7 @@ from service.engine.distance_field import DistanceField
 from service.engine.grid import GRID_SIZE, grid
 from service.engine.hypotheses import from_principal_axes
 from service.engine.icp import Surface, icp
-from service.engine.normalize import normalize, radius
+from service.engine.normalize import normalize, radius, radius_at_least
 from service.engine.normals import estimate_normals
 from service.engine.principal_axes import Frame, principal_frame
 from service.engine.registration import kabsch, paper_least_squares, ransac
@@ -166,3 +166,15 @@ def test_cell_groups_join_what_lies_within_a_cell_and_part_what_lies_far_apart()
     assert len(set(labels[:25])) == len(set(labels[25:])) == 1
     assert labels[0] != labels[25]
     assert len(set(cell_groups(line, 0.001))) == 25  # 4 mm apart: beyond 2 sqrt(3) mm cells
+
+
+def test_a_clouds_radius_is_at_least_half_its_strided_span():
+    """``radius_at_least`` never exceeds the radius (the frame's scales are cut by it), and on
+    a wide frame it is close enough to stand for it."""
+    rng = np.random.default_rng(3)
+    for shape in ([1.0, 1.0, 1.0], [2.0, 0.1, 0.5], [0.01, 0.01, 3.0]):
+        cloud = rng.normal(size=(20_000, 3)) * shape + rng.normal(size=3)
+        assert radius(cloud) / 3 <= radius_at_least(cloud) <= radius(cloud)
+    frame = np.stack(np.meshgrid(np.linspace(-0.4, 0.4, 640), np.linspace(-0.3, 0.3, 480)), -1)
+    table = np.concatenate([frame.reshape(-1, 2), np.full((640 * 480, 1), 0.8)], axis=1)
+    assert radius_at_least(table) == pytest.approx(radius(table), rel=0.25)
