@@ -550,6 +550,8 @@ class Engine:
         principal axes did (docs/decisions.md#a-whole-parts-cloud)."""
         if query.viewpoint is not None or self.settings.whole_hidden >= 1:
             return False
+        if "principal-axes" not in query.sources:  # the views are all it is searched by
+            return False
         rng = np.random.default_rng(self.settings.seed)  # the search's own draws unchanged
         observed.whole = hidden_share(observed.points, rng) >= self.settings.whole_hidden
         return observed.whole

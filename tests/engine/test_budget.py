@@ -221,3 +221,14 @@ def test_a_whole_cloud_of_a_part_not_registered_is_refused_without_its_single_vi
     reference = references[1]
     answer = engine.align(view_of(reference, 7))
     assert answer.label == reference.name and answer.verdict == "match"
+
+
+@needs_model
+def test_a_whole_cloud_searched_by_its_views_alone_is_still_searched(references, engine_with):
+    """Asked to hypothesise from the rendered views alone, a whole cloud is searched by them:
+    the whole-part search it would stand on is not asked for."""
+    reference = references[4]
+    cloud, _ = posed(reference, 2048, 11)
+    answer = engine_with().align(cloud, hypotheses=("views",))
+    assert answer.hypothesis != "none"  # searched, not refused for its size
+    assert answer.label == reference.name
