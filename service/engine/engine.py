@@ -506,8 +506,9 @@ class Engine:
     def _finished_from(self, observed: Observed) -> float:
         """The least fit x coverage whose pose is finished (flips, near-symmetries): the
         search's ``hopeless``; for a whole part's cloud, ``WHOLE_FINISHED`` too. Its principal
-        axes were verified every way round: the flips lift a right part's pose from a wrong
-        sign's 0.7, never another part's (docs/decisions.md#a-whole-parts-cloud)."""
+        axes were verified every way round; the flips lifted a right part from a wrong sign's
+        0.70, while other parts' clouds reached the finish at 0.31-0.66
+        (docs/decisions.md#a-whole-parts-cloud)."""
         if observed.whole:
             return max(self.settings.hopeless, WHOLE_FINISHED)
         return self.settings.hopeless

@@ -6,9 +6,9 @@ land on the convex hull of the flipped cloud and the camera are the visible ones
 Used to make partial views: the evaluation's "partial" family and the classifier's
 augmented views, so that a half-seen part is still recognised.
 
-``hidden_share`` asks the other way whether a cloud is one camera's view: a view hides none of
-its own points from its camera, while a whole part's cloud hides a fifth to a third of them
-from any side (docs/decisions.md#a-whole-parts-cloud).
+``hidden_share`` asks the other way whether a cloud is one camera's view: a view hides almost
+none of its own points from its camera, while a whole part's cloud hides about a fifth of them
+from every side (docs/decisions.md#a-whole-parts-cloud).
 """
 
 from __future__ import annotations
