@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
+from service.engine.supports import in_plane
 from service.engine.tuning import HIDDEN_CELL, HIDDEN_DEPTH, HIDDEN_POINTS, HPR_LOG_RADIUS
 
 # the 13 axes of a cube (its faces', edges' and corners' directions), each looked along both ways
@@ -25,9 +26,8 @@ _AXES = np.array(
     dtype=np.float64,
 )
 AXES = _AXES / np.linalg.norm(_AXES, axis=1, keepdims=True)
-_ACROSS = np.cross(AXES, np.where(np.abs(AXES[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
-ACROSS = _ACROSS / np.linalg.norm(_ACROSS, axis=1, keepdims=True)  # a unit vector across each
-UP = np.cross(AXES, ACROSS)  # ... and the third of each axis's frame
+# each axis's image plane: two unit vectors across it
+ACROSS, UP = np.stack([in_plane(axis) for axis in AXES]).transpose(2, 0, 1)
 
 
 def visible_points(points: np.ndarray, camera: np.ndarray) -> np.ndarray:
