@@ -16,7 +16,7 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.engine.normalize import subsample
+from service.engine.normalize import lengths, subsample
 
 
 @dataclass(frozen=True)
@@ -121,7 +121,7 @@ class Frame:
 
     @cached_property
     def _ranges(self) -> np.ndarray:
-        ranges = np.linalg.norm(self.points - self.viewpoint, axis=1)
+        ranges = lengths(self.points - self.viewpoint)
         ranges.flags.writeable = False
         return ranges
 

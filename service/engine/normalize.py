@@ -31,6 +31,14 @@ def radius(points: np.ndarray, centroid: np.ndarray | None = None) -> float:
     return float(np.sqrt(((points - centre) ** 2).sum(axis=1).max()))
 
 
+def lengths(vectors: np.ndarray) -> np.ndarray:
+    """(N,) the length of each row of ``vectors`` (N, 3): ``np.linalg.norm(vectors, axis=1)``
+    to the bit, summed column by column, 7 times faster on a camera frame's points (whose
+    reduction along a row of three is numpy's slow path; docs/decisions.md#a-frames-body)."""
+    x, y, z = vectors[:, 0], vectors[:, 1], vectors[:, 2]
+    return np.sqrt(x * x + y * y + z * z)
+
+
 def radius_at_least(points: np.ndarray, stride: int = 16) -> float:
     """A lower bound of ``radius``, cheap on a frame of many points: half the widest span of
     every ``stride``-th point along an axis (two points lie within twice the radius of each

@@ -12,6 +12,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from service.engine.frame import Frame
+from service.engine.normalize import lengths
 from service.engine.surroundings import groups
 from service.engine.tuning import LINK_FOOTPRINTS, LINK_NOISE
 
@@ -77,7 +78,7 @@ def grid_links(
         other = np.take(where, np.take(pixel, mine) + (down * grid_width + right))
         there = other >= 0
         mine, other = mine[there], other[there]
-        gap = np.linalg.norm(np.take(points, mine, axis=0) - np.take(points, other, axis=0), axis=1)
+        gap = lengths(np.take(points, mine, axis=0) - np.take(points, other, axis=0))
         reach = footprints * np.take(footprint, mine) * length
         linked = gap < reach + noise * np.take(ranges, mine)
         firsts.append(mine[linked])

@@ -22,7 +22,7 @@ from scipy import ndimage
 
 from service.engine.bins import Band, bin_band
 from service.engine.frame import Frame
-from service.engine.normalize import subsample
+from service.engine.normalize import lengths, subsample
 from service.engine.segments import components, grid_links
 from service.engine.tuning import (
     BEHIND_SHARE,
@@ -83,7 +83,7 @@ def extent(points: np.ndarray) -> float:
     """How far a cloud reaches from its centroid, stray points aside (the 95th percentile)."""
     if not len(points):
         return 0.0
-    return float(np.percentile(np.linalg.norm(points - points.mean(axis=0), axis=1), 95))
+    return float(np.percentile(lengths(points - points.mean(axis=0)), 95))
 
 
 def set_aside_supports(
@@ -191,7 +191,7 @@ def find_supports(
                 largest = largest_fitting(scales, PART_EXTENTS * extent(frame.points[keep]))
         residual = on_plane @ plane[:3] - plane[3]
         spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
-        distance = np.linalg.norm(on_plane - frame.viewpoint, axis=1)
+        distance = lengths(on_plane - frame.viewpoint)
         counted = int(round(len(on) * density))
         supports.append(Support(plane, counted, spread, float(np.median(distance)), band))
     return supports
@@ -353,7 +353,7 @@ def reach(on_plane: np.ndarray, plane: np.ndarray) -> float:
     """How far a plane's points reach across it from their centre (the 95th percentile)."""
     offset = on_plane - on_plane.mean(axis=0)
     across = offset - np.outer(offset @ plane[:3], plane[:3])
-    return float(np.percentile(np.linalg.norm(across, axis=1), 95))
+    return float(np.percentile(lengths(across), 95))
 
 
 def in_plane(normal: np.ndarray) -> np.ndarray:
@@ -373,7 +373,7 @@ def largest_plane(
     sample, slack = points[chosen], tolerance[chosen]
     triples = sample[rng.integers(0, len(sample), size=(SUPPORT_ITERATIONS, 3))]
     normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
-    length = np.linalg.norm(normals, axis=1)
+    length = lengths(normals)
     good = length > 1e-12
     if not good.any():
         return None
@@ -417,7 +417,7 @@ class Noise:
     support: Support | None
 
     def at(self, points: np.ndarray, viewpoint: np.ndarray) -> float:
-        distance = float(np.median(np.linalg.norm(points - viewpoint, axis=1)))
+        distance = float(np.median(lengths(points - viewpoint)))
         if self.support is None:
             return SENSOR_NOISE * distance
         return self.support.noise_at(distance)

@@ -13,7 +13,7 @@ from service.engine.distance_field import DistanceField
 from service.engine.grid import GRID_SIZE, grid
 from service.engine.hypotheses import from_principal_axes
 from service.engine.icp import Surface, icp
-from service.engine.normalize import normalize, radius, radius_at_least
+from service.engine.normalize import lengths, normalize, radius, radius_at_least
 from service.engine.normals import estimate_normals
 from service.engine.principal_axes import Frame, principal_frame
 from service.engine.registration import kabsch, paper_least_squares, ransac
@@ -178,3 +178,14 @@ def test_a_clouds_radius_is_at_least_half_its_strided_span():
     frame = np.stack(np.meshgrid(np.linspace(-0.4, 0.4, 640), np.linspace(-0.3, 0.3, 480)), -1)
     table = np.concatenate([frame.reshape(-1, 2), np.full((640 * 480, 1), 0.8)], axis=1)
     assert radius_at_least(table) == pytest.approx(radius(table), rel=0.25)
+
+
+def test_a_frames_lengths_are_numpys_norms_to_the_bit():
+    """``lengths`` stands for ``np.linalg.norm(axis=1)`` on the frame's steps: a range or a gap
+    one ulp apart could move a link or a plane's inlier across its threshold."""
+    rng = np.random.default_rng(5)
+    for scale in (1e-3, 1.0, 1e3):
+        vectors = rng.normal(size=(50_000, 3)) * scale
+        np.testing.assert_array_equal(lengths(vectors), np.linalg.norm(vectors, axis=1))
+    turned = rng.normal(size=(3, 2000)).T  # a view whose rows are not contiguous
+    np.testing.assert_array_equal(lengths(turned), np.linalg.norm(turned, axis=1))
