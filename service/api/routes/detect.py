@@ -8,6 +8,7 @@ from typing import Annotated, Any
 import numpy as np
 from fastapi import APIRouter, Query, Request
 
+from service import memory
 from service.api.auth import ReadAccess
 from service.api.dependencies import LimiterDep, ProcessesDep, SettingsDep
 from service.api.engine_processes import EngineProcesses
@@ -83,19 +84,22 @@ async def detect(
     as fields or query parameters. An organized frame keeps its pixel grid: its missing pixels
     are skipped, and ``indices`` are pixels (``row * width + col``)."""
     kind = body_kind(request, JSON, RAW, MULTIPART)
-    if kind == MULTIPART:
-        body = await read_form(request, CLOUD_FILES, CAMERA_FIELDS + OPTIONS, "the frame")
-    else:
-        body = await request.body()
-    query = {
-        "candidates": candidates,
-        "min_confidence": min_confidence,
-        "viewpoint": None if viewpoint is None else vector(viewpoint, "viewpoint"),
-        "max_instances": max_instances,
-        "roi": None if roi is None else box(roi),
-    }
-    query = {key: value for key, value in query.items() if value is not None}
-    answer = await limiter.align(_detect, engine, settings, body, kind, query)
+    # the frame's body and arrays come from the heap as the search's do: read and parsed
+    # under the fixed threshold, they took 10-15 ms more (docs/decisions.md#a-frames-body)
+    with memory.frame_heap():
+        if kind == MULTIPART:
+            body = await read_form(request, CLOUD_FILES, CAMERA_FIELDS + OPTIONS, "the frame")
+        else:
+            body = await request.body()
+        query = {
+            "candidates": candidates,
+            "min_confidence": min_confidence,
+            "viewpoint": None if viewpoint is None else vector(viewpoint, "viewpoint"),
+            "max_instances": max_instances,
+            "roi": None if roi is None else box(roi),
+        }
+        query = {key: value for key, value in query.items() if value is not None}
+        answer = await limiter.align(_detect, engine, settings, body, kind, query)
     counter = request.app.state.metrics_detections
     for detection in answer.detections:
         counter.labels(verdict=detection.verdict).inc()
