@@ -17,6 +17,15 @@ def to_model_frame(scene: np.ndarray, rotation: np.ndarray, translation: np.ndar
     return (scene - translation) @ rotation
 
 
+def turned_about(
+    rotation: np.ndarray, translation: np.ndarray, turns: np.ndarray, centre: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The pose ``scene = R m + t`` with the part first turned by each of ``turns`` (K, 3, 3)
+    about ``centre`` (model frame): ``scene = R (T (m - c) + c) + t``. (K, 3, 3), (K, 3)."""
+    rotations = np.einsum("ij,njk->nik", rotation, turns)
+    return rotations, translation + (centre - turns @ centre) @ rotation.T
+
+
 def alignment_error(
     scene: np.ndarray, reference_tree: cKDTree, rotation: np.ndarray, translation: np.ndarray
 ) -> float:

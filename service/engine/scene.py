@@ -28,7 +28,7 @@ from functools import cached_property
 
 import numpy as np
 
-from service.engine.alignment import alignment_error
+from service.engine.alignment import alignment_error, turned_about
 from service.engine.answer import Alignment, Detection, SceneAnswer
 from service.engine.confidence import Calibration, from_log_odds, log_odds
 from service.engine.entry import Entry
@@ -67,6 +67,7 @@ from service.engine.tuning import (
     TEMPLATE_POOL,
     TEMPLATE_SIZES,
     THROUGH_DOUBT,
+    TURNED_THROUGH,
     WIDER,
 )
 from service.engine.verification import surface_distance
@@ -87,6 +88,19 @@ class Instance:
     @property
     def centre(self) -> np.ndarray:
         return self.answer.rotation @ self.entry.frame.centroid + self.answer.translation
+
+
+@dataclass(frozen=True)
+class Claim:
+    """What an answer's claim on a region holds: the region (a mask of the frame's points),
+    the free points then (their indices, and the points) and the points it claimed at the
+    chain's pose, which its poses are finished on, at the claim's ``tolerance``."""
+
+    region: np.ndarray
+    available: np.ndarray
+    free: np.ndarray
+    points: np.ndarray
+    tolerance: float
 
 
 def near_surface(
@@ -200,17 +214,10 @@ def evidence(
     nearer hides) and the share the camera saw through; the share of its segment's points it
     explains (and, ``ELIGIBLE_FEATURES``, log10 of the share it leaves plus 0.01), and how
     many (log10)."""
-    toward = (viewpoint - answer.translation) @ answer.rotation  # the camera, model frame
-    view = int(entry.views.nearest(toward[None])[0])
-    expected = entry.surface.points[entry.expected[view]] @ answer.rotation.T + answer.translation
-    seen, through = (0.0, 0.0)
+    seen, through = (answer.coverage, 0.0)
     if camera is not None:
-        shown, behind = camera.look(expected, tolerance)
-        hidden = ~shown & ~behind
-        counted = max(int((~hidden).sum()), 1)
-        seen, through = float(shown.sum() / counted), float(behind.sum() / counted)
-    else:
-        seen = answer.coverage
+        rotation, translation = answer.rotation, answer.translation
+        seen, through = seen_through(entry, rotation, translation, viewpoint, camera, tolerance)
     # the chain counts what neighbours hide as missed; where the camera saw through little of
     # the part, the frame tells that from what is not there (docs/decisions.md#what-the-frame-shows)
     chain = answer.confidence
@@ -229,6 +236,25 @@ def evidence(
         "unexplained": float(np.log10(1 - explained + 0.01)),
         "points": float(np.log10(max(claimed, 1))),
     }
+
+
+def seen_through(
+    entry: Entry,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    viewpoint: np.ndarray,
+    camera: DepthImage,
+    tolerance: float,
+) -> tuple[float, float]:
+    """Of what the camera should see of the part at the pose (its nearest view's expected
+    points), the share the frame's depth shows, and the share the camera saw through, of
+    what nothing nearer hides."""
+    toward = (viewpoint - translation) @ rotation  # the camera, model frame
+    view = int(entry.views.nearest(toward[None])[0])
+    expected = entry.surface.points[entry.expected[view]] @ rotation.T + translation
+    shown, behind = camera.look(expected, tolerance)
+    counted = max(int((shown | behind).sum()), 1)
+    return float(shown.sum() / counted), float(behind.sum() / counted)
 
 
 def chain_confidence(said: dict[str, float]) -> float:
@@ -644,10 +670,27 @@ class Scan:
         in_region[region] = True
         if in_region[claimed].sum() < MIN_EXPLAINED:
             return None
-        # the pose finished on every point it claims: the chain saw a sample of a region
-        self.finish(answer, entry, self.frame.points[claimed], tolerance / CLAIM_TOLERANCE)
-        claimed, distance = claimable(available, free, entry, answer, tolerance)
-        inside = int(in_region[claimed].sum())
+        chain = replace(answer, reasons=list(answer.reasons or []))  # as the chain gave it
+        claim = Claim(in_region, available, free, self.frame.points[claimed], tolerance)
+        instance = self.posed(answer, entry, claim)
+        if instance is None:
+            return None
+        instance = self.turned(instance, chain, claim)
+        doubted = instance.answer.verdict != "match"
+        if again and doubted and instance.answer.confidence >= INSTANCE_FLOOR:
+            instance = self.asked_again(region, instance, sigma)
+        if (instance.answer.confidence or 0.0) < self.floor:
+            return None
+        return instance
+
+    def posed(self, answer: Alignment, entry: Entry, claim: Claim) -> Instance | None:
+        """``answer``'s pose finished on the points its claim holds (the chain saw a sample of
+        a region), as an instance claiming the free points near it, judged; None if it
+        explains fewer than ``MIN_EXPLAINED`` of the region."""
+        tolerance = claim.tolerance
+        self.finish(answer, entry, claim.points, tolerance / CLAIM_TOLERANCE)
+        claimed, distance = claimable(claim.available, claim.free, entry, answer, tolerance)
+        inside = int(claim.region[claimed].sum())
         if inside < MIN_EXPLAINED:
             return None
         instance = Instance(answer, entry, claimed, distance)
@@ -655,19 +698,47 @@ class Scan:
             answer,
             entry,
             inside,
-            len(region),
+            int(claim.region.sum()),
             self.frame.viewpoint,
             self.camera,
             tolerance,
             self.seen_as,
         )
         self.judge(instance)
-        doubted = instance.answer.verdict != "match"
-        if again and doubted and instance.answer.confidence >= INSTANCE_FLOOR:
-            instance = self.asked_again(region, instance, sigma)
-        if (instance.answer.confidence or 0.0) < self.floor:
-            return None
         return instance
+
+    def turned(self, instance: Instance, chain: Alignment, claim: Claim) -> Instance:
+        """A doubted instance the camera saw through (``THROUGH_DOUBT``) posed again at the
+        near turn of its part the camera sees through least, where that is under half as
+        much (``TURNED_THROUGH``), from the chain's answer (``chain``); the more confident of
+        the two. The chain tells a part's near turns apart by how near its points lie to the
+        surface, which hardly differs; what the camera saw through where the part would be
+        does (docs/decisions.md#a-near-turn-the-camera-sees-through)."""
+        symmetry, through = instance.entry.symmetry, instance.evidence["through"]
+        if instance.answer.verdict == "match" or self.camera is None or through <= THROUGH_DOUBT:
+            return instance
+        if not len(symmetry.near):
+            return instance
+        answer, turns, centre = instance.answer, symmetry.near_tried, symmetry.centroid
+        rotations, translations = turned_about(answer.rotation, answer.translation, turns, centre)
+        shares = [  # at the tolerance of the instance's own evidence
+            seen_through(
+                instance.entry,
+                rotation,
+                translation,
+                self.frame.viewpoint,
+                self.camera,
+                claim.tolerance,
+            )[1]
+            for rotation, translation in zip(rotations, translations, strict=True)
+        ]
+        best = int(np.argmin(shares))
+        if shares[best] >= TURNED_THROUGH * through:
+            return instance
+        again = replace(chain, rotation=rotations[best], translation=translations[best])
+        other = self.posed(again, instance.entry, claim)
+        better = other is not None and other.answer.confidence > instance.answer.confidence
+        return other if better else instance
 
     def asked_again(self, region: np.ndarray, instance: Instance, sigma: float) -> Instance:
         """A posed instance the frame does not confirm, with the chain asked once more about

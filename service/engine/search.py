@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.engine import hypotheses as sources
+from service.engine.alignment import turned_about
 from service.engine.answer import CandidateFit
 from service.engine.entry import Entry
 from service.engine.fits import Fit
@@ -438,8 +439,7 @@ class Search:
         entry = self.entry(best.row)
         turns = entry.frame.half_turns
         centre = entry.frame.centroid  # scene = R (T (m - c) + c) + t
-        rotations = np.einsum("ij,njk->nik", best.rotation, turns)
-        translations = best.translation + (centre - turns @ centre) @ best.rotation.T
+        rotations, translations = turned_about(best.rotation, best.translation, turns, centre)
         views = entry.views.turned(best.view, turns)
         flipped = []
         for k in range(len(turns)):
@@ -466,8 +466,7 @@ class Search:
             return fits
         centre = symmetry.centroid  # scene = R (N (m - c) + c) + t
         turns = symmetry.near_tried
-        rotations = np.einsum("ij,njk->nik", best.rotation, turns)
-        translations = best.translation + (centre - turns @ centre) @ best.rotation.T
+        rotations, translations = turned_about(best.rotation, best.translation, turns, centre)
         # coverage against the view each turned pose expects, not the unturned pose's
         views = entry.views.turned(best.view, turns)
         order = self.near_order(entry, best, rotations, translations, turns)

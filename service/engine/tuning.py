@@ -155,6 +155,8 @@ TEMPLATE_ICP_POINTS = 384  # a placed view is refined on this many of the points
 SEGMENT_POINTS = 4096  # the chain answers a segment from this many of its points at most
 SEGMENT_RESCUED = 8  # ... trying this many more parts where none fits (a lone cloud: 4)
 THROUGH_DOUBT = 0.1  # an instance the camera saw through more than this is doubted
+# ... and posed again at its part's near turn the camera sees through least, below this share
+TURNED_THROUGH = 0.5
 THROUGH_WEIGHT = 6.0  # a refined placed view: what the camera saw through counts this much
 DUPLICATE_GAP = 0.1  # two instances of a part this close (share of its scale) are one
 FRAGMENT = 0.3  # a region narrower than this share of the smallest part's scale is a fragment

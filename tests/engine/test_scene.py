@@ -17,7 +17,7 @@ from service.engine.engine import Engine
 from service.engine.mapping import Mapper
 from service.engine.projection import DepthImage
 from service.engine.sampling import sample_surface_faces
-from service.engine.scene import Instance, evidence, settle_claims
+from service.engine.scene import Instance, evidence, seen_through, settle_claims
 from service.engine.segments import segments
 from service.engine.supports import set_aside_supports
 from service.engine.tuning import (
@@ -581,3 +581,57 @@ def test_what_nearer_parts_hide_is_not_missed_by_the_chain(engine, one_box):
 def box_column(shot, share: float) -> float:
     """The column left of which ``share`` of the pixels showing the shot's first part lie."""
     return float(np.quantile(np.nonzero(shot.shows == 0)[1], share))
+
+
+def stepped_bar() -> trimesh.Trimesh:
+    """A bar with a low step on one end: turned end for end, it nearly fits itself (its
+    ``symmetry.near``), but the camera sees the table through where the step would be."""
+    bar = trimesh.creation.box((0.08, 0.03, 0.03))
+    step = trimesh.creation.box((0.02, 0.03, 0.006))
+    step.apply_translation((0.03, 0.0, 0.018))
+    return trimesh.util.concatenate([bar, step])
+
+
+def angle_deg(first: np.ndarray, second: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(first @ second.T) - 1) / 2, -1, 1))))
+
+
+def test_a_near_turn_the_camera_sees_through_is_posed_again(engine):
+    # the chain's answer for the bar, placed at the near turn the camera sees through most
+    # (the step at the other end): the frame doubts it, and the claim poses it again at the
+    # turn the camera sees through least, the true pose
+    mesh = stepped_bar()
+    points, faces = sample_surface_faces(mesh, 2048, 0)
+    shipped = Calibration.load(SETTINGS.detect_confidence_path)
+    bars = Engine(engine.mapper, SETTINGS.engine, engine.calibration, shipped)
+    bars.load([bars.make_reference("bar", points, mesh=mesh, face_index=faces)])
+    entry = bars.entry("bar")
+    assert len(entry.symmetry.near)
+    shot = shoot([(mesh, *resting(mesh, spin(25), 0.0, 0.0))], table())
+    ((rotation, translation),) = shot.poses
+    frame = frame_of(shot)
+    query = bars.query(None, None, True, None, frame.viewpoint)
+    scales = bars._frame_scales(query, frame)
+    thin = frame.thinned(scales.min() / THIN_PER_SCALE)
+    keep, supports = set_aside_supports(thin, frame.pixel_angle(), scales, query.rng)
+    rest = thin.take(keep)
+    scan = bars._scan(query, rest, thin, supports, scales, None, None, None, None)
+    region = np.flatnonzero(shot.shows.reshape(-1)[rest.index] == 0)  # the bar's pixels
+    sigma = scan.noise.at(rest.points[region], rest.viewpoint)
+    answer = scan.answer_for(rest.points[region], sigma)
+    assert answer.label == "bar" and angle_deg(answer.rotation, rotation) < 5
+
+    turns, centre = entry.symmetry.near, entry.symmetry.centroid
+    rotations = np.einsum("ij,njk->nik", rotation, turns)
+    translations = translation + (centre - turns @ centre) @ rotation.T
+    tolerance = CLAIM_TOLERANCE * scan.part_tolerance(entry, sigma)  # the evidence's
+    through = [
+        seen_through(entry, r, t, rest.viewpoint, scan.camera, tolerance)[1]
+        for r, t in zip(rotations, translations, strict=True)
+    ]
+    worst = int(np.argmax(through))
+    assert through[worst] > 2 * THROUGH_DOUBT
+    turned = replace(answer, rotation=rotations[worst], translation=translations[worst])
+    instance = scan.claim(region, turned, sigma, again=False)
+    assert instance is not None and angle_deg(instance.answer.rotation, rotation) < 5
+    assert instance.evidence["through"] < through[worst] / 2
