@@ -216,8 +216,9 @@ def evidence(
     many (log10)."""
     seen, through = (answer.coverage, 0.0)
     if camera is not None:
-        rotation, translation = answer.rotation, answer.translation
-        seen, through = seen_through(entry, rotation, translation, viewpoint, camera, tolerance)
+        rotations, translations = answer.rotation[None], answer.translation[None]
+        shares = seen_through(entry, rotations, translations, viewpoint, camera, tolerance)
+        seen, through = float(shares[0][0]), float(shares[1][0])
     # the chain counts what neighbours hide as missed; where the camera saw through little of
     # the part, the frame tells that from what is not there (docs/decisions.md#what-the-frame-shows)
     chain = answer.confidence
@@ -240,21 +241,22 @@ def evidence(
 
 def seen_through(
     entry: Entry,
-    rotation: np.ndarray,
-    translation: np.ndarray,
+    rotations: np.ndarray,
+    translations: np.ndarray,
     viewpoint: np.ndarray,
     camera: DepthImage,
     tolerance: float,
-) -> tuple[float, float]:
-    """Of what the camera should see of the part at the pose (its nearest view's expected
-    points), the share the frame's depth shows, and the share the camera saw through, of
-    what nothing nearer hides."""
-    toward = (viewpoint - translation) @ rotation  # the camera, model frame
-    view = int(entry.views.nearest(toward[None])[0])
-    expected = entry.surface.points[entry.expected[view]] @ rotation.T + translation
+) -> tuple[np.ndarray, np.ndarray]:
+    """At each pose (K, 3, 3), (K, 3), of what the camera should see of the part (its nearest
+    view's expected points), the share the frame's depth shows, and the share the camera saw
+    through, of what nothing nearer hides: (K,) each."""
+    toward = np.einsum("ki,kij->kj", viewpoint - translations, rotations)  # the camera, model
+    views = entry.views.nearest(toward)
+    expected = entry.surface.points[entry.expected[views]]  # (K, P, 3)
+    expected = np.einsum("kpj,kij->kpi", expected, rotations) + translations[:, None]
     shown, behind = camera.look(expected, tolerance)
-    counted = max(int((shown | behind).sum()), 1)
-    return float(shown.sum() / counted), float(behind.sum() / counted)
+    counted = np.maximum((shown | behind).sum(axis=1), 1)
+    return shown.sum(axis=1) / counted, behind.sum(axis=1) / counted
 
 
 def chain_confidence(said: dict[str, float]) -> float:
@@ -721,17 +723,11 @@ class Scan:
             return instance
         answer, turns, centre = instance.answer, symmetry.near_tried, symmetry.centroid
         rotations, translations = turned_about(answer.rotation, answer.translation, turns, centre)
-        shares = [  # at the tolerance of the instance's own evidence
-            seen_through(
-                instance.entry,
-                rotation,
-                translation,
-                self.frame.viewpoint,
-                self.camera,
-                claim.tolerance,
-            )[1]
-            for rotation, translation in zip(rotations, translations, strict=True)
-        ]
+        viewpoint, camera = self.frame.viewpoint, self.camera
+        # at the tolerance of the instance's own evidence
+        _, shares = seen_through(
+            instance.entry, rotations, translations, viewpoint, camera, claim.tolerance
+        )
         best = int(np.argmin(shares))
         if shares[best] >= TURNED_THROUGH * through:
             return instance

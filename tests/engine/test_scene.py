@@ -625,10 +625,9 @@ def test_a_near_turn_the_camera_sees_through_is_posed_again(engine):
     rotations = np.einsum("ij,njk->nik", rotation, turns)
     translations = translation + (centre - turns @ centre) @ rotation.T
     tolerance = CLAIM_TOLERANCE * scan.part_tolerance(entry, sigma)  # the evidence's
-    through = [
-        seen_through(entry, r, t, rest.viewpoint, scan.camera, tolerance)[1]
-        for r, t in zip(rotations, translations, strict=True)
-    ]
+    _, through = seen_through(
+        entry, rotations, translations, rest.viewpoint, scan.camera, tolerance
+    )
     worst = int(np.argmax(through))
     assert through[worst] > 2 * THROUGH_DOUBT
     turned = replace(answer, rotation=rotations[worst], translation=translations[worst])
