@@ -23,7 +23,7 @@ from starlette.formparsers import MultiPartException, MultiPartParser
 from service.api import depth
 from service.api.clouds import Cloud, camera_centre
 from service.api.parsers import read_upload
-from service.api.routes.common import invalid, known_fields, parse
+from service.api.routes.common import MULTIPART, invalid, known_fields, parse
 from service.api.schemas import DepthCamera
 from service.api.validation import validate_points
 from service.settings import Settings
@@ -99,6 +99,16 @@ async def read_form(
     if "file" not in found:
         raise invalid(f"upload {what} as a file field", "file")
     return Form(found, dict(texts))
+
+
+async def read_body(
+    request: Request, kind: str, fields: tuple[str, ...], what: str
+) -> bytes | Form:
+    """A cloud's or frame's body: the multipart form (``read_form``: a ``file`` and ``mask``,
+    and ``fields``), or the bytes of a JSON or raw body."""
+    if kind == MULTIPART:
+        return await read_form(request, CLOUD_FILES, fields, what)
+    return await request.body()
 
 
 async def read_parts(

@@ -609,14 +609,9 @@ def test_a_near_turn_the_camera_sees_through_is_posed_again(engine):
     assert len(entry.symmetry.near)
     shot = shoot([(mesh, *resting(mesh, spin(25), 0.0, 0.0))], table())
     ((rotation, translation),) = shot.poses
-    frame = frame_of(shot)
-    query = bars.query(None, None, True, None, frame.viewpoint)
-    scales = bars._frame_scales(query, frame)
-    thin = frame.thinned(scales.min() / THIN_PER_SCALE)
-    keep, supports = set_aside_supports(thin, frame.pixel_angle(), scales, query.rng)
-    rest = thin.take(keep)
-    scan = bars._scan(query, rest, thin, supports, scales, None, None, None, None)
-    region = np.flatnonzero(shot.shows.reshape(-1)[rest.index] == 0)  # the bar's pixels
+    scan, _, shows = scan_of(bars, shot)
+    rest = scan.frame
+    region = np.flatnonzero(shows == 0)  # the bar's points
     sigma = scan.noise.at(rest.points[region], rest.viewpoint)
     answer = scan.answer_for(rest.points[region], sigma)
     assert answer.label == "bar" and angle_deg(answer.rotation, rotation) < 5

@@ -31,7 +31,7 @@ from service.api.schemas import (
     CandidateFit,
     ReferenceName,
 )
-from service.api.uploads import CAMERA_FIELDS, CLOUD_FILES, Form, form_points, read_form
+from service.api.uploads import CAMERA_FIELDS, Form, form_points, read_body
 from service.api.validation import points_from_raw, validate_points
 from service.engine.answer import Alignment
 from service.settings import Settings
@@ -80,10 +80,7 @@ async def align(
     a cloud, mesh or depth-image ``file`` (a depth image with ``fx``, ``fy``, ``cx``, ``cy``;
     its viewpoint is the camera, ``[0, 0, 0]``), the options as fields or query parameters."""
     kind = body_kind(request, JSON, RAW, MULTIPART)
-    if kind == MULTIPART:
-        body = await read_form(request, CLOUD_FILES, CAMERA_FIELDS + OPTIONS, "the cloud")
-    else:
-        body = await request.body()
+    body = await read_body(request, kind, CAMERA_FIELDS + OPTIONS, "the cloud")
     query = {
         "candidates": candidates,
         "top_k": top_k,

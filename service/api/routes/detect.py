@@ -32,7 +32,7 @@ from service.api.schemas import (
     DetectResponse,
     ReferenceName,
 )
-from service.api.uploads import CAMERA_FIELDS, CLOUD_FILES, Form, form_cloud, read_form
+from service.api.uploads import CAMERA_FIELDS, Form, form_cloud, read_body
 from service.api.validation import points_from_raw, validate_points
 from service.engine.answer import SceneAnswer
 from service.engine.frame import Frame
@@ -87,10 +87,7 @@ async def detect(
     # the frame's body and arrays come from the heap as the search's do: read and parsed
     # under the fixed threshold, they took 10-15 ms more (docs/decisions.md#a-frames-body)
     with memory.frame_heap():
-        if kind == MULTIPART:
-            body = await read_form(request, CLOUD_FILES, CAMERA_FIELDS + OPTIONS, "the frame")
-        else:
-            body = await request.body()
+        body = await read_body(request, kind, CAMERA_FIELDS + OPTIONS, "the frame")
         query = {
             "candidates": candidates,
             "min_confidence": min_confidence,
