@@ -28,7 +28,7 @@ class Normalized:
 def radius(points: np.ndarray, centroid: np.ndarray | None = None) -> float:
     """The scale of a cloud: the largest distance from its centroid to one of its points."""
     centre = points.mean(axis=0) if centroid is None else centroid
-    return float(np.sqrt(((points - centre) ** 2).sum(axis=1).max()))
+    return float(lengths(points - centre).max())
 
 
 def lengths(vectors: np.ndarray) -> np.ndarray:
@@ -47,7 +47,7 @@ def radius_at_least(points: np.ndarray, stride: int = 16) -> float:
     if not len(sample):
         return 0.0
     low, high = sample[sample.argmin(axis=0)], sample[sample.argmax(axis=0)]  # each axis's
-    return float(np.linalg.norm(high - low, axis=1).max()) / 2
+    return float(lengths(high - low).max()) / 2
 
 
 # All points (nearly) the same: a cloud whose radius is below this share of its coordinates'

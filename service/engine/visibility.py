@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
+from service.engine.normalize import radius
 from service.engine.supports import in_plane
 from service.engine.tuning import HIDDEN_CELL, HIDDEN_DEPTH, HIDDEN_POINTS, HPR_LOG_RADIUS
 
@@ -68,7 +69,7 @@ def hidden_share(points: np.ndarray, rng: np.random.Generator) -> float:
     points = points - points.mean(axis=0)
     distances, _ = cKDTree(points).query(points, k=2)
     spacing = float(np.median(distances[:, 1]))
-    reach = float(np.sqrt(np.einsum("ij,ij->i", points, points).max()))
+    reach = radius(points, np.zeros(3))
     if spacing <= 0 or reach <= 0:
         return 0.0
     cell = HIDDEN_CELL * spacing
