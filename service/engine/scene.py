@@ -710,24 +710,24 @@ class Scan:
         return instance
 
     def turned(self, instance: Instance, chain: Alignment, claim: Claim) -> Instance:
-        """A doubted instance the camera saw through (``THROUGH_DOUBT``) posed again at the
-        near turn of its part the camera sees through least, where that is under half as
-        much (``TURNED_THROUGH``), from the chain's answer (``chain``); the more confident of
-        the two. The chain tells a part's near turns apart by how near its points lie to the
-        surface, which hardly differs; what the camera saw through where the part would be
-        does (docs/decisions.md#a-near-turn-the-camera-sees-through)."""
-        symmetry, through = instance.entry.symmetry, instance.evidence["through"]
+        """A doubted instance the camera saw through (``THROUGH_DOUBT``) posed again where
+        the camera sees through it least, if under half as much (``TURNED_THROUGH``): at
+        its part's near turns, or at the other poses the chain found fitting alike (its
+        ``closest`` and ``alternatives``); the more confident of the two. The chain tells
+        such poses apart by how near its points lie to the surface, which hardly differs;
+        what the camera saw through where the part would be does
+        (docs/decisions.md#a-near-turn-the-camera-sees-through)."""
+        through = instance.evidence["through"]
         if instance.answer.verdict == "match" or self.camera is None or through <= THROUGH_DOUBT:
             return instance
-        if not len(symmetry.near):
+        rotations, translations = self.other_poses(instance, chain)
+        if not len(rotations):
             return instance
-        answer, turns, centre = instance.answer, symmetry.near_tried, symmetry.centroid
-        rotations, translations = turned_about(answer.rotation, answer.translation, turns, centre)
-        viewpoint, camera = self.frame.viewpoint, self.camera
         # at the tolerance of the instance's own evidence
         _, shares = seen_through(
-            instance.entry, rotations, translations, viewpoint, camera, claim.tolerance
-        )
+            instance.entry, rotations, translations, self.frame.viewpoint, self.camera,
+            claim.tolerance,
+        )  # fmt: skip
         best = int(np.argmin(shares))
         if shares[best] >= TURNED_THROUGH * through:
             return instance
@@ -735,6 +735,20 @@ class Scan:
         other = self.posed(again, instance.entry, claim)
         better = other is not None and other.answer.confidence > instance.answer.confidence
         return other if better else instance
+
+    @staticmethod
+    def other_poses(instance: Instance, chain: Alignment) -> tuple[np.ndarray, np.ndarray]:
+        """The poses ``turned`` tries: the instance's turned by each of its part's near
+        turns, and the chain's other poses of the part. (K, 3, 3), (K, 3)."""
+        symmetry, answer = instance.entry.symmetry, instance.answer
+        rotations, translations = turned_about(
+            answer.rotation, answer.translation, symmetry.near_tried, symmetry.centroid
+        )
+        others = [p for p in [chain.closest, *chain.alternatives] if p and p.label is None]
+        if others:
+            rotations = np.concatenate([rotations, np.stack([p.rotation for p in others])])
+            translations = np.concatenate([translations, np.stack([p.translation for p in others])])
+        return rotations, translations
 
     def asked_again(self, region: np.ndarray, instance: Instance, sigma: float) -> Instance:
         """A posed instance the frame does not confirm, with the chain asked once more about

@@ -11,7 +11,10 @@ import numpy as np
 import pytest
 import trimesh
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
+from service.engine.alignment import turned_about
+from service.engine.answer import AlternativePose
 from service.engine.confidence import Calibration
 from service.engine.engine import Engine
 from service.engine.mapping import Mapper
@@ -629,3 +632,43 @@ def test_a_near_turn_the_camera_sees_through_is_posed_again(engine):
     instance = scan.claim(region, turned, sigma, again=False)
     assert instance is not None and angle_deg(instance.answer.rotation, rotation) < 5
     assert instance.evidence["through"] < through[worst] / 2
+
+
+def test_a_pose_the_chain_found_alike_the_camera_sees_through_less_is_posed_again(engine):
+    # a bar with a block on one end has no near turn; the chain's answer for it, turned end
+    # for end (the block where the camera sees the table), with the true pose as the other
+    # pose the chain found fitting alike (``closest``): the frame doubts the answer, and the
+    # claim poses it again at that other pose
+    bar = trimesh.creation.box((0.08, 0.03, 0.02))
+    block = trimesh.creation.box((0.02, 0.03, 0.02))
+    block.apply_translation((0.03, 0.0, 0.02))
+    mesh = trimesh.util.concatenate([bar, block])
+    points, faces = sample_surface_faces(mesh, 2048, 0)
+    shipped = Calibration.load(SETTINGS.detect_confidence_path)
+    bars = Engine(engine.mapper, SETTINGS.engine, engine.calibration, shipped)
+    bars.load([bars.make_reference("bar", points, mesh=mesh, face_index=faces)])
+    entry = bars.entry("bar")
+    assert not len(entry.symmetry.near)
+    shot = shoot([(mesh, *resting(mesh, spin(25), 0.0, 0.0))], table())
+    ((rotation, _),) = shot.poses
+    scan, _, shows = scan_of(bars, shot)
+    rest = scan.frame
+    region = np.flatnonzero(shows == 0)
+    sigma = scan.noise.at(rest.points[region], rest.viewpoint)
+    answer = scan.answer_for(rest.points[region], sigma)
+    assert answer.label == "bar" and angle_deg(answer.rotation, rotation) < 5
+
+    end_for_end = Rotation.from_euler("z", 180, degrees=True).as_matrix()[None]
+    (turned,), (moved,) = turned_about(
+        answer.rotation, answer.translation, end_for_end, entry.symmetry.centroid
+    )
+    alike = AlternativePose(answer.rotation, answer.translation, 0.5)
+    wrong = replace(answer, rotation=turned, translation=moved, closest=alike, alternatives=[])
+    tolerance = CLAIM_TOLERANCE * scan.part_tolerance(entry, sigma)
+    _, (through,) = seen_through(
+        entry, turned[None], moved[None], rest.viewpoint, scan.camera, tolerance
+    )
+    assert through > 2 * THROUGH_DOUBT
+    instance = scan.claim(region, wrong, sigma, again=False)
+    assert instance is not None and angle_deg(instance.answer.rotation, rotation) < 5
+    assert instance.evidence["through"] < through / 2
