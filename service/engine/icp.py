@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 
 from service.engine.alignment import to_model_frame
 from service.engine.distance_field import DistanceField
+from service.engine.normalize import lengths
 from service.engine.tuning import BACK_FACING, BEHIND, CLOSE, CLOSE_RAD, SURFACE_NEIGHBOURS
 
 TUKEY = 4.685  # Tukey's constant: 95 % efficiency on Gaussian residuals
@@ -102,7 +103,7 @@ class Surface:
         (``BACK_FACING``): the same for every point paired with it, so asked once a sample."""
         sight = camera[..., None, :] - self.points
         toward = np.einsum("...ni,ni->...n", sight, self.normals)
-        return toward < -BACK_FACING * np.linalg.norm(sight, axis=-1)
+        return toward < -BACK_FACING * lengths(sight)
 
 
 def rotation_vector(w: np.ndarray) -> np.ndarray:

@@ -32,10 +32,11 @@ def radius(points: np.ndarray, centroid: np.ndarray | None = None) -> float:
 
 
 def lengths(vectors: np.ndarray) -> np.ndarray:
-    """(N,) the length of each row of ``vectors`` (N, 3): ``np.linalg.norm(vectors, axis=1)``
-    to the bit, summed column by column, 7 times faster on a camera frame's points (whose
-    reduction along a row of three is numpy's slow path; docs/decisions.md#a-frames-body)."""
-    x, y, z = vectors[:, 0], vectors[:, 1], vectors[:, 2]
+    """(...) the length of each row of ``vectors`` (..., 3): ``np.linalg.norm(vectors,
+    axis=-1)`` to the bit, summed column by column, 7 times faster on a camera frame's points
+    (whose reduction along a row of three is numpy's slow path;
+    docs/decisions.md#a-frames-body)."""
+    x, y, z = vectors[..., 0], vectors[..., 1], vectors[..., 2]
     return np.sqrt(x * x + y * y + z * z)
 
 

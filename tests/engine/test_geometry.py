@@ -189,3 +189,6 @@ def test_a_frames_lengths_are_numpys_norms_to_the_bit():
         np.testing.assert_array_equal(lengths(vectors), np.linalg.norm(vectors, axis=1))
     turned = rng.normal(size=(3, 2000)).T  # a view whose rows are not contiguous
     np.testing.assert_array_equal(lengths(turned), np.linalg.norm(turned, axis=1))
+    # ... and on stacks of them, as ICP asks which samples face away from several cameras
+    sights = rng.normal(size=(16, 5000, 3)) * 0.05
+    np.testing.assert_array_equal(lengths(sights), np.linalg.norm(sights, axis=-1))
