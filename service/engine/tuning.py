@@ -147,6 +147,7 @@ TEMPLATE_REFINED = 16  # the best placed views refined (per seed kept, then over
 TEMPLATE_PARTS = 3  # parts whose views are placed over a segment where the chain found none
 PINHOLE_RESIDUAL_PX = 0.75  # a frame whose pixels fit a pinhole this well has a depth image
 PINHOLE_POINTS = 4096  # ... fitted on about this many of its points, evenly through it
+PIXEL_PAIRS = 65_536  # a frame's pixel angle: the median over about this many neighbours
 RANK_EVERY, RANK_ANGLES, RANK_SEEDS = 4, 8, 3  # ... which parts: every 4th view, 8 turns, 3 seeds
 TEMPLATE_SIZES = (0.25, 1.15)  # ... of a scale this share of the segment's radius
 NOISE_TOLERANCES = 2.0  # a fit's tolerance is at least this many times the sensor's noise

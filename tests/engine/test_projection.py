@@ -1,11 +1,13 @@
-"""The depth image read back from an organized frame's own points: the pinhole that made it,
-fitted on a sample of them, and refused where the pixels fit no pinhole."""
+"""What an organized frame's own points say of its camera: the pinhole that made it, fitted on
+a sample of them (refused where the pixels fit no pinhole), and the angle between neighbouring
+pixels' rays, the median of a sample of their pairs."""
 
 import numpy as np
+import pytest
 
 from service.engine.frame import Frame
 from service.engine.projection import DepthImage
-from service.engine.tuning import PINHOLE_POINTS
+from service.engine.tuning import PINHOLE_POINTS, PIXEL_PAIRS
 from tests.frames import VGA, frame_of, resting, shoot, spin, table
 
 WIDTH, HEIGHT, FOCAL = VGA
@@ -45,3 +47,24 @@ def test_a_frame_whose_pixels_fit_no_pinhole_has_no_depth_image():
     points = np.column_stack([bent * frame.points[:, 2:3], frame.points[:, 2]])
     distorted = Frame.of(points, frame.index, frame.shape)
     assert DepthImage.of(distorted) is None
+
+
+def all_pairs_angle(frame: Frame) -> float:
+    """The median angle between the rays of every pair of horizontally neighbouring pixels of
+    ``frame`` (written out over all of them), per pixel of the full grid."""
+    rays = frame.points / np.linalg.norm(frame.points, axis=1, keepdims=True)
+    beside = np.diff(frame.index) == frame.step
+    cosine = np.einsum("ij,ij->i", rays[:-1], rays[1:])[beside]
+    return float(np.median(np.arccos(np.clip(cosine, -1, 1)))) / frame.step
+
+
+def test_a_frames_pixel_angle_is_the_median_of_its_neighbours_from_a_sample():
+    # 640 x 480 (more pairs than PIXEL_PAIRS: a sample of them), its every 3rd row and column,
+    # and a crop of few pixels (every pair): the median angle between neighbouring rays
+    frame = box_on_table()
+    assert len(frame) > 2 * PIXEL_PAIRS
+    for thin in (frame, frame.every(3)):
+        assert thin.pixel_angle() == pytest.approx(all_pairs_angle(thin), rel=2e-3)
+    small = frame.take(np.flatnonzero(frame.rows < 40))
+    assert len(small) < PIXEL_PAIRS
+    assert small.pixel_angle() == pytest.approx(all_pairs_angle(small), rel=1e-12)
