@@ -35,7 +35,7 @@ from service.engine.entry import Entry
 from service.engine.frame import Frame
 from service.engine.icp import Start, icp_many
 from service.engine.look_alikes import doubt
-from service.engine.normalize import radius, subsample
+from service.engine.normalize import radius, squared_distances, subsample
 from service.engine.projection import DepthImage
 from service.engine.query import Query, Stopwatch
 from service.engine.segments import adjacent, cell_groups, segments
@@ -114,7 +114,7 @@ def near_surface(
     its bounding sphere), and their distances: (indices, distances)."""
     centre = rotation @ entry.frame.centroid + translation
     reach = entry.reference.scale * 1.05 + tolerance
-    inside = np.flatnonzero(np.sum((points - centre) ** 2, axis=1) <= reach**2)
+    inside = np.flatnonzero(squared_distances(points, centre) <= reach**2)
     if not len(inside):
         return inside, np.zeros(0)
     model = (points[inside] - translation) @ rotation

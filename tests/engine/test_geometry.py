@@ -13,7 +13,13 @@ from service.engine.distance_field import DistanceField
 from service.engine.grid import GRID_SIZE, grid
 from service.engine.hypotheses import from_principal_axes
 from service.engine.icp import Surface, icp
-from service.engine.normalize import lengths, normalize, radius, radius_at_least
+from service.engine.normalize import (
+    lengths,
+    normalize,
+    radius,
+    radius_at_least,
+    squared_distances,
+)
 from service.engine.normals import estimate_normals
 from service.engine.principal_axes import Frame, principal_frame
 from service.engine.registration import kabsch, paper_least_squares, ransac
@@ -192,3 +198,8 @@ def test_a_frames_lengths_are_numpys_norms_to_the_bit():
     # ... and on stacks of them, as ICP asks which samples face away from several cameras
     sights = rng.normal(size=(16, 5000, 3)) * 0.05
     np.testing.assert_array_equal(lengths(sights), np.linalg.norm(sights, axis=-1))
+    # ... and the squared distances that pick a part's neighbourhood out of a frame
+    frame, centre = rng.normal(size=(50_000, 3)), rng.normal(size=3)
+    np.testing.assert_array_equal(
+        squared_distances(frame, centre), np.sum((frame - centre) ** 2, axis=1)
+    )
