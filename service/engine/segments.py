@@ -126,11 +126,16 @@ def adjacent(frame: Frame, labels: np.ndarray, chosen: np.ndarray, reach: int) -
         pairs = tree.query_pairs(reach * spacing, output_type="ndarray")
         a, b = mine[pairs[:, 0]], mine[pairs[:, 1]]
     else:
-        height, width = frame.shape
         step = frame.step
-        grid_height, grid_width = (height + step - 1) // step, (width + step - 1) // step
+        rows, columns = np.divmod(frame.index[pick], frame.shape[1])
+        rows //= step
+        columns //= step
+        # the image of the box the chosen pixels span, not the frame's: a tenth of it, often
+        rows -= rows.min()
+        columns -= columns.min()
+        grid_height, grid_width = int(rows.max()) + 1, int(columns.max()) + 1
         image = np.full((grid_height + 2 * reach, grid_width + 2 * reach), -1, dtype=np.intp)
-        image[frame.rows[pick] // step + reach, frame.columns[pick] // step + reach] = labels[pick]
+        image[rows + reach, columns + reach] = labels[pick]
         core = image[reach:-reach, reach:-reach]
         a_list, b_list = [], []
         for down in range(0, reach + 1):
