@@ -28,7 +28,8 @@ class Normalized:
 def radius(points: np.ndarray, centroid: np.ndarray | None = None) -> float:
     """The scale of a cloud: the largest distance from its centroid to one of its points."""
     centre = points.mean(axis=0) if centroid is None else centroid
-    return float(lengths(points - centre).max())
+    # the largest square's root: the same float (sqrt is monotone), without an (N, 3) copy
+    return float(np.sqrt(squared_distances(points, centre).max()))
 
 
 def lengths(vectors: np.ndarray) -> np.ndarray:

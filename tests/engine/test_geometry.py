@@ -203,3 +203,5 @@ def test_a_frames_lengths_are_numpys_norms_to_the_bit():
     np.testing.assert_array_equal(
         squared_distances(frame, centre), np.sum((frame - centre) ** 2, axis=1)
     )
+    assert radius(frame) == np.linalg.norm(frame - frame.mean(axis=0), axis=1).max()
+    assert radius(frame, centre) == np.linalg.norm(frame - centre, axis=1).max()
