@@ -724,10 +724,10 @@ class Scan:
         if not len(rotations):
             return instance
         # at the tolerance of the instance's own evidence
+        viewpoint, camera = self.frame.viewpoint, self.camera
         _, shares = seen_through(
-            instance.entry, rotations, translations, self.frame.viewpoint, self.camera,
-            claim.tolerance,
-        )  # fmt: skip
+            instance.entry, rotations, translations, viewpoint, camera, claim.tolerance
+        )
         best = int(np.argmin(shares))
         if shares[best] >= TURNED_THROUGH * through:
             return instance
