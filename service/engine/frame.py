@@ -16,7 +16,7 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.engine.normalize import lengths, subsample
+from service.engine.normalize import distances, lengths, subsample
 from service.engine.tuning import PIXEL_PAIRS
 
 
@@ -55,6 +55,21 @@ class Frame:
     @property
     def columns(self) -> np.ndarray:
         return self.index % self.shape[1]
+
+    @property
+    def grid_shape(self) -> tuple[int, int]:
+        """(rows, columns) of an organized frame's own grid: every ``step``-th of the full one."""
+        height, width = self.shape
+        return (height + self.step - 1) // self.step, (width + self.step - 1) // self.step
+
+    def cells(self, pick: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The row and column of each point (of those ``pick`` names) on the frame's own grid,
+        from one division of their pixels."""
+        rows, columns = np.divmod(self.index if pick is None else self.index[pick], self.shape[1])
+        if self.step > 1:
+            rows //= self.step
+            columns //= self.step
+        return rows, columns
 
     def cropped(self, low: np.ndarray, high: np.ndarray) -> Frame:
         """Only the points inside the box ``low``-``high`` (the request's ``roi``)."""
@@ -129,7 +144,7 @@ class Frame:
 
     @cached_property
     def _ranges(self) -> np.ndarray:
-        ranges = lengths(self.points - self.viewpoint)
+        ranges = distances(self.points, self.viewpoint)
         ranges.flags.writeable = False
         return ranges
 

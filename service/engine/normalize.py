@@ -51,6 +51,12 @@ def squared_distances(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
     return x * x + y * y + z * z
 
 
+def distances(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """(N,) each point's distance from ``centre``: ``lengths(points - centre)`` to the bit,
+    without the (N, 3) difference."""
+    return np.sqrt(squared_distances(points, centre))
+
+
 def radius_at_least(points: np.ndarray, stride: int = 16) -> float:
     """A lower bound of ``radius``, cheap on a frame of many points: half the widest span of
     every ``stride``-th point along an axis (two points lie within twice the radius of each

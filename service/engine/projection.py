@@ -34,11 +34,7 @@ class DepthImage:
         points = frame.points
         if np.any(points[:, 2] <= 0):
             return None
-        step = frame.step
-        rows, columns = np.divmod(frame.index, frame.shape[1])
-        if step > 1:
-            rows //= step
-            columns //= step
+        rows, columns = frame.cells()
         # the pinhole from every k-th point: its 4 numbers need no more (a tenth of the time)
         every = slice(None, None, max(1, len(points) // PINHOLE_POINTS))
         pixel = np.stack([columns[every], rows[every]], axis=1).astype(np.float64)
@@ -50,8 +46,7 @@ class DepthImage:
         residual = pixel - (ratio * focal + centre)
         if np.sqrt(np.mean(residual**2)) > PINHOLE_RESIDUAL_PX:
             return None
-        height, width = frame.shape
-        depth = np.full(((height + step - 1) // step, (width + step - 1) // step), np.nan)
+        depth = np.full(frame.grid_shape, np.nan)
         depth[rows, columns] = points[:, 2]
         return cls(focal, centre, depth)
 

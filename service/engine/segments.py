@@ -57,10 +57,9 @@ def grid_links(
     """The linked pairs of neighbouring pixels (``grid_segments``), as two index arrays into
     the frame's points."""
     footprints, noise = links
-    height, width = frame.shape
     step = frame.step
-    rows, columns = frame.rows // step, frame.columns // step
-    grid_height, grid_width = (height + step - 1) // step, (width + step - 1) // step
+    rows, columns = frame.cells()
+    grid_height, grid_width = frame.grid_shape
     pixel = rows * grid_width + columns
     where = np.full(grid_height * grid_width, -1, dtype=np.intp)
     where[pixel] = np.arange(len(frame))
@@ -126,10 +125,7 @@ def adjacent(frame: Frame, labels: np.ndarray, chosen: np.ndarray, reach: int) -
         pairs = tree.query_pairs(reach * spacing, output_type="ndarray")
         a, b = mine[pairs[:, 0]], mine[pairs[:, 1]]
     else:
-        step = frame.step
-        rows, columns = np.divmod(frame.index[pick], frame.shape[1])
-        rows //= step
-        columns //= step
+        rows, columns = frame.cells(pick)
         # the image of the box the chosen pixels span, not the frame's: a tenth of it, often
         rows -= rows.min()
         columns -= columns.min()

@@ -22,7 +22,7 @@ from scipy import ndimage
 
 from service.engine.bins import Band, bin_band
 from service.engine.frame import Frame
-from service.engine.normalize import lengths, subsample
+from service.engine.normalize import distances, lengths, subsample
 from service.engine.segments import components, grid_links
 from service.engine.tuning import (
     BEHIND_SHARE,
@@ -83,7 +83,7 @@ def extent(points: np.ndarray) -> float:
     """How far a cloud reaches from its centroid, stray points aside (the 95th percentile)."""
     if not len(points):
         return 0.0
-    return float(np.percentile(lengths(points - points.mean(axis=0)), 95))
+    return float(np.percentile(distances(points, points.mean(axis=0)), 95))
 
 
 def set_aside_supports(
@@ -191,7 +191,7 @@ def find_supports(
                 largest = largest_fitting(scales, PART_EXTENTS * extent(frame.points[keep]))
         residual = on_plane @ plane[:3] - plane[3]
         spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
-        distance = lengths(on_plane - frame.viewpoint)
+        distance = distances(on_plane, frame.viewpoint)
         counted = int(round(len(on) * density))
         supports.append(Support(plane, counted, spread, float(np.median(distance)), band))
     return supports
@@ -424,7 +424,7 @@ class Noise:
     support: Support | None
 
     def at(self, points: np.ndarray, viewpoint: np.ndarray) -> float:
-        distance = float(np.median(lengths(points - viewpoint)))
+        distance = float(np.median(distances(points, viewpoint)))
         if self.support is None:
             return SENSOR_NOISE * distance
         return self.support.noise_at(distance)

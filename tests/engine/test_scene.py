@@ -599,29 +599,35 @@ def angle_deg(first: np.ndarray, second: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(first @ second.T) - 1) / 2, -1, 1))))
 
 
-def test_a_near_turn_the_camera_sees_through_is_posed_again(engine):
-    # the chain's answer for the bar, placed at the near turn the camera sees through most
-    # (the step at the other end): the frame doubts it, and the claim poses it again at the
-    # turn the camera sees through least, the true pose
-    mesh = stepped_bar()
+def bar_answered(engine: Engine, mesh: trimesh.Trimesh):
+    """``mesh`` registered alone as "bar" (the shipped scene calibration), shot lying on a
+    table, and the chain's answer for its points as the frame's search asks: its entry, the
+    scan, the bar's region and the sensor's noise there, the answer, and the true pose."""
     points, faces = sample_surface_faces(mesh, 2048, 0)
     shipped = Calibration.load(SETTINGS.detect_confidence_path)
     bars = Engine(engine.mapper, SETTINGS.engine, engine.calibration, shipped)
     bars.load([bars.make_reference("bar", points, mesh=mesh, face_index=faces)])
-    entry = bars.entry("bar")
-    assert len(entry.symmetry.near)
     shot = shoot([(mesh, *resting(mesh, spin(25), 0.0, 0.0))], table())
-    ((rotation, translation),) = shot.poses
     scan, _, shows = scan_of(bars, shot)
-    rest = scan.frame
     region = np.flatnonzero(shows == 0)  # the bar's points
-    sigma = scan.noise.at(rest.points[region], rest.viewpoint)
-    answer = scan.answer_for(rest.points[region], sigma)
+    sigma = scan.noise.at(scan.frame.points[region], scan.frame.viewpoint)
+    answer = scan.answer_for(scan.frame.points[region], sigma)
+    return bars.entry("bar"), scan, region, sigma, answer, shot.poses[0]
+
+
+def test_a_near_turn_the_camera_sees_through_is_posed_again(engine):
+    # the chain's answer for the bar, placed at the near turn the camera sees through most
+    # (the step at the other end): the frame doubts it, and the claim poses it again at the
+    # turn the camera sees through least, the true pose
+    entry, scan, region, sigma, answer, (rotation, translation) = bar_answered(
+        engine, stepped_bar()
+    )
+    assert len(entry.symmetry.near)
     assert answer.label == "bar" and angle_deg(answer.rotation, rotation) < 5
+    rest = scan.frame
 
     turns, centre = entry.symmetry.near, entry.symmetry.centroid
-    rotations = np.einsum("ij,njk->nik", rotation, turns)
-    translations = translation + (centre - turns @ centre) @ rotation.T
+    rotations, translations = turned_about(rotation, translation, turns, centre)
     tolerance = CLAIM_TOLERANCE * scan.part_tolerance(entry, sigma)  # the evidence's
     _, through = seen_through(
         entry, rotations, translations, rest.viewpoint, scan.camera, tolerance
@@ -642,21 +648,12 @@ def test_a_pose_the_chain_found_alike_the_camera_sees_through_less_is_posed_agai
     bar = trimesh.creation.box((0.08, 0.03, 0.02))
     block = trimesh.creation.box((0.02, 0.03, 0.02))
     block.apply_translation((0.03, 0.0, 0.02))
-    mesh = trimesh.util.concatenate([bar, block])
-    points, faces = sample_surface_faces(mesh, 2048, 0)
-    shipped = Calibration.load(SETTINGS.detect_confidence_path)
-    bars = Engine(engine.mapper, SETTINGS.engine, engine.calibration, shipped)
-    bars.load([bars.make_reference("bar", points, mesh=mesh, face_index=faces)])
-    entry = bars.entry("bar")
+    entry, scan, region, sigma, answer, (rotation, _) = bar_answered(
+        engine, trimesh.util.concatenate([bar, block])
+    )
     assert not len(entry.symmetry.near)
-    shot = shoot([(mesh, *resting(mesh, spin(25), 0.0, 0.0))], table())
-    ((rotation, _),) = shot.poses
-    scan, _, shows = scan_of(bars, shot)
-    rest = scan.frame
-    region = np.flatnonzero(shows == 0)
-    sigma = scan.noise.at(rest.points[region], rest.viewpoint)
-    answer = scan.answer_for(rest.points[region], sigma)
     assert answer.label == "bar" and angle_deg(answer.rotation, rotation) < 5
+    rest = scan.frame
 
     end_for_end = Rotation.from_euler("z", 180, degrees=True).as_matrix()[None]
     (turned,), (moved,) = turned_about(
