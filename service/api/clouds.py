@@ -27,6 +27,11 @@ def organized(grid: np.ndarray, max_points: int, what: str) -> Cloud:
     flat = grid.reshape(-1, 3)
     finite = np.isfinite(flat)  # column by column: .all(axis=1) over rows of 3 is 8x slower
     valid = np.flatnonzero(finite[:, 0] & finite[:, 1] & finite[:, 2])
+    if not len(valid):
+        raise InvalidPoints(
+            f"the {what} ({height} x {width} pixels) has no valid point: every pixel is NaN or "
+            "infinite, where its camera saw nothing; check that the camera sees the scene"
+        )
     if len(valid) > max_points:
         raise InvalidPoints(
             f"the {what} has {len(valid)} valid points, more than the maximum of {max_points}: "

@@ -49,6 +49,13 @@ def depth_cloud(
             )
         valid &= mask != 0
     count = int(valid.sum())
+    if not count:
+        where = " inside the mask" if mask is not None else ""
+        raise InvalidPoints(
+            f"the depth image ({depth.shape[1]}x{depth.shape[0]} pixels) has no pixel with a "
+            f"depth{where}: every one is 0 or not finite; check the camera (and the mask), "
+            "and depth_scale"
+        )
     if count > max_points:
         raise InvalidPoints(
             f"the depth image has {count} pixels with a depth, more than the maximum of "

@@ -45,7 +45,10 @@ def read_pcd(data: bytes, max_points: int) -> Cloud:
     points = np.stack([rows[axis] for axis in "xyz"], axis=1)
     if grid:
         return organized(points.reshape(metadata.height, metadata.width, 3), max_points, "PCD")
-    return Cloud(points[~np.isnan(points).any(axis=1)])
+    kept = points[~np.isnan(points).any(axis=1)]
+    if not len(kept) and len(points):
+        raise InvalidPoints(f"the PCD's {len(points)} points are all NaN: no point is left")
+    return Cloud(kept)
 
 
 def read_header(data: bytes) -> tuple[MetaData, int]:

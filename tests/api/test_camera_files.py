@@ -19,6 +19,7 @@ from service.api import uploads
 from service.api.depth import depth_points
 from service.api.schemas import DepthCamera
 from service.engine.sampling import sample_surface
+from service.errors import InvalidPoints
 from tests.camera import INTRINSICS, depth_image, unproject
 from tests.meshes import pybullet_mesh
 
@@ -73,6 +74,17 @@ def test_a_depth_image_is_the_pinhole_model_of_its_pixels(depth):
     mask[:, : depth.shape[1] // 2] = True
     kept = depth_points(depth, camera, mask, 10**6)
     np.testing.assert_allclose(kept, unproject(np.where(mask, depth, 0)))
+
+
+def test_a_depth_image_without_a_depth_says_so(depth):
+    """A camera that saw nothing (or a mask that misses every depth) names the image, not an
+    empty list of triples."""
+    camera = DepthCamera(**INTRINSICS)
+    height, width = depth.shape
+    with pytest.raises(InvalidPoints, match=rf"\({width}x{height} pixels\) has no pixel with a"):
+        depth_points(np.zeros_like(depth), camera, None, 10**6)
+    with pytest.raises(InvalidPoints, match="has no pixel with a depth inside the mask"):
+        depth_points(depth, camera, np.zeros(depth.shape, dtype=bool), 10**6)
 
 
 def test_a_png_written_by_open3d_gives_open3d_s_own_cloud(depth, tmp_path):

@@ -134,6 +134,28 @@ def test_a_pixel_with_any_coordinate_missing_is_dropped():
     np.testing.assert_array_equal(cloud.points, grid.reshape(-1, 3)[cloud.index])
 
 
+def test_a_frame_without_a_valid_pixel_says_so():
+    """A camera that saw nothing writes a frame of NaN pixels: the answer names the frame and
+    its pixels, not an empty list of triples."""
+    grid = np.full((4, 5, 3), np.nan, dtype=np.float32)
+    grid[1, 2] = [np.inf, 0.0, 1.0]
+    with pytest.raises(InvalidPoints, match=r"the NPY frame \(4 x 5 pixels\) has no valid point"):
+        read_points(npy(grid), "frame.npy", COUNT, MAX_POINTS)
+    saved = PointCloud.from_xyz_points(grid.reshape(-1, 3))
+    saved.metadata = saved.metadata.derive(width=5, height=4)
+    buffer = io.BytesIO()
+    saved.save(buffer, Encoding.BINARY)
+    with pytest.raises(InvalidPoints, match=r"the PCD \(4 x 5 pixels\) has no valid point"):
+        read_points(buffer.getvalue(), "frame.pcd", COUNT, MAX_POINTS)
+
+
+def test_a_pcd_of_nan_points_alone_says_so():
+    buffer = io.BytesIO()
+    PointCloud.from_xyz_points(np.full((6, 3), np.nan, np.float32)).save(buffer, Encoding.BINARY)
+    with pytest.raises(InvalidPoints, match="the PCD's 6 points are all NaN"):
+        read_points(buffer.getvalue(), "cloud.pcd", COUNT, MAX_POINTS)
+
+
 def npy(array: np.ndarray) -> bytes:
     buffer = io.BytesIO()
     np.save(buffer, array, allow_pickle=True)
