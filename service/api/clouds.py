@@ -29,7 +29,7 @@ def organized(grid: np.ndarray, max_points: int, what: str) -> Cloud:
     valid = np.flatnonzero(finite[:, 0] & finite[:, 1] & finite[:, 2])
     if not len(valid):
         raise InvalidPoints(
-            f"the {what} ({height} x {width} pixels) has no valid point: every pixel is NaN or "
+            f"the {what} ({width}x{height} pixels) has no valid point: every pixel is NaN or "
             "infinite, where its camera saw nothing; check that the camera sees the scene"
         )
     if len(valid) > max_points:

@@ -139,13 +139,13 @@ def test_a_frame_without_a_valid_pixel_says_so():
     its pixels, not an empty list of triples."""
     grid = np.full((4, 5, 3), np.nan, dtype=np.float32)
     grid[1, 2] = [np.inf, 0.0, 1.0]
-    with pytest.raises(InvalidPoints, match=r"the NPY frame \(4 x 5 pixels\) has no valid point"):
+    with pytest.raises(InvalidPoints, match=r"the NPY frame \(5x4 pixels\) has no valid point"):
         read_points(npy(grid), "frame.npy", COUNT, MAX_POINTS)
     saved = PointCloud.from_xyz_points(grid.reshape(-1, 3))
     saved.metadata = saved.metadata.derive(width=5, height=4)
     buffer = io.BytesIO()
     saved.save(buffer, Encoding.BINARY)
-    with pytest.raises(InvalidPoints, match=r"the PCD \(4 x 5 pixels\) has no valid point"):
+    with pytest.raises(InvalidPoints, match=r"the PCD \(5x4 pixels\) has no valid point"):
         read_points(buffer.getvalue(), "frame.pcd", COUNT, MAX_POINTS)
 
 
