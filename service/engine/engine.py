@@ -45,7 +45,14 @@ from service.engine.grid import grid
 from service.engine.icp import Surface
 from service.engine.look_alikes import doubt, relation
 from service.engine.mapping import Mapper
-from service.engine.normalize import has_extent, normalize, radius, radius_at_least, subsample
+from service.engine.normalize import (
+    has_extent,
+    no_larger,
+    normalize,
+    radius,
+    radius_at_least,
+    subsample,
+)
 from service.engine.normals import estimate_normals, mesh_normals, orient_by_views
 from service.engine.principal_axes import flatness, one_line, thinness
 from service.engine.projection import DepthImage
@@ -932,8 +939,7 @@ class Engine:
         scales = query.snapshot.scales[query.allowed]
         if len(scales) and scales.max() <= radius_at_least(frame.points):
             return scales  # every part fits: the exact radius of 300,000 points costs 9 ms
-        size = radius(frame.points) if len(frame) else 0.0
-        fits = scales[scales <= size]
+        fits = scales[no_larger(scales, frame.points)]
         return fits if len(fits) else scales
 
     def _nearest_views(

@@ -15,9 +15,11 @@ from service.engine.hypotheses import from_principal_axes
 from service.engine.icp import Surface, icp
 from service.engine.normalize import (
     lengths,
+    no_larger,
     normalize,
     radius,
     radius_at_least,
+    radius_bounds,
     squared_distances,
 )
 from service.engine.normals import estimate_normals
@@ -184,6 +186,25 @@ def test_a_clouds_radius_is_at_least_half_its_strided_span():
     frame = np.stack(np.meshgrid(np.linspace(-0.4, 0.4, 640), np.linspace(-0.3, 0.3, 480)), -1)
     table = np.concatenate([frame.reshape(-1, 2), np.full((640 * 480, 1), 0.8)], axis=1)
     assert radius_at_least(table) == pytest.approx(radius(table), rel=0.25)
+
+
+def test_the_sizes_a_frame_holds_are_those_its_exact_radius_allows():
+    """``no_larger`` answers ``scales <= radius(points)`` on the bounds of ``radius_bounds``
+    alone unless a scale lies between them, where it measures the radius itself: scales at,
+    just inside and just outside each bound, and the radius itself, are judged as the exact
+    radius judges them."""
+    rng = np.random.default_rng(5)
+    frame = np.stack(np.meshgrid(np.linspace(-0.4, 0.4, 320), np.linspace(-0.3, 0.3, 240)), -1)
+    table = np.concatenate([frame.reshape(-1, 2), np.full((320 * 240, 1), 0.8)], axis=1)
+    clouds = [rng.normal(size=(20_000, 3)) * [2.0, 0.1, 0.5] + 3.0, table]
+    for cloud in clouds:
+        exact = radius(cloud)
+        low, high = radius_bounds(cloud)
+        assert low <= exact <= high
+        near = np.array([low, high, exact, 0.999 * low, 1.001 * high, 0.5 * exact, 2 * exact])
+        for scales in (near, near[[3, 4, 5, 6]], np.array([exact * (1 + 1e-12)])):
+            np.testing.assert_array_equal(no_larger(scales, cloud), scales <= exact)
+    assert not no_larger(np.array([0.1]), np.zeros((0, 3))).any()
 
 
 def test_a_frames_lengths_are_numpys_norms_to_the_bit():
