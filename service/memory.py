@@ -15,7 +15,9 @@ While a camera frame is searched (``frame_heap``), both thresholds are raised: a
 arrays (300,000 points: 2-7 MB each, dozens a frame) would otherwise each get fresh pages,
 zeroed and faulted in, unmapped again when freed, and the heap's top handed back whenever
 128 KiB of it was free; the engine ran 1.6-2 times slower in the service than in a plain
-process. Once no frame is searched the thresholds are restored and the heap trimmed
+process. Once no frame has been searched for ``FRAME_IDLE_S`` the thresholds are restored and
+the heap trimmed: trimmed after each frame, the next one faulted its pages in again, at times
+100-190 ms of a 1280 x 720 frame's first arrays where they took 6 ms
 (docs/decisions.md#the-heaps-thresholds).
 
 Measured (scripts/load.py, docs/operations.md#memory): a growing gallery cost 2.2 MiB of
@@ -38,6 +40,7 @@ MMAP_THRESHOLD = 128 * 1024  # bytes: glibc's own starting value, kept from movi
 TRIM_THRESHOLD = 128 * 1024  # bytes: glibc's own, which a fixed mmap threshold keeps
 FRAME_MMAP_THRESHOLD = 32 << 20  # while a frame is searched: glibc's own ceiling for it ...
 FRAME_TRIM_THRESHOLD = 256 << 20  # ... and the heap's free top kept for the next arrays
+FRAME_IDLE_S = 1.0  # ... until no frame has been searched this long (a camera's next frame)
 
 log = logging.getLogger(__name__)
 
@@ -71,20 +74,24 @@ def release_free_heap() -> bool:
 
 _frames = 0  # frames being searched now, in this process
 _frames_lock = threading.Lock()
+_idle: threading.Timer | None = None  # restores the thresholds once no frame came for a while
 
 
 @contextmanager
 def frame_heap() -> Iterator[None]:
     """While a camera frame is searched, its arrays come from the heap and are reused; once no
-    frame is (in any thread), the thresholds are fixed again and the heap trimmed (glibc only;
-    elsewhere nothing changes)."""
-    global _frames
+    frame has been searched (in any thread) for ``FRAME_IDLE_S``, the thresholds are fixed
+    again and the heap trimmed (glibc only; elsewhere nothing changes)."""
+    global _frames, _idle
     libc = _glibc()
     if libc is None:
         yield
         return
     with _frames_lock:
         _frames += 1
+        if _idle is not None:  # the heap of the frame before is this one's
+            _idle.cancel()
+            _idle = None
         if _frames == 1:
             libc.mallopt(M_MMAP_THRESHOLD, FRAME_MMAP_THRESHOLD)
             libc.mallopt(M_TRIM_THRESHOLD, FRAME_TRIM_THRESHOLD)
@@ -94,6 +101,19 @@ def frame_heap() -> Iterator[None]:
         with _frames_lock:
             _frames -= 1
             if _frames == 0:
-                libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD)
-                libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD)
-                release_free_heap()
+                _idle = threading.Timer(FRAME_IDLE_S, _frames_done)
+                _idle.daemon = True
+                _idle.start()
+
+
+def _frames_done() -> None:
+    """No frame came for ``FRAME_IDLE_S``: the thresholds restored, the heap trimmed."""
+    global _idle
+    libc = _glibc()
+    with _frames_lock:
+        if _frames or _idle is not threading.current_thread():  # a frame came meanwhile
+            return
+        _idle = None
+        libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD)
+        libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD)
+    release_free_heap()

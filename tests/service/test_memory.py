@@ -99,12 +99,14 @@ def test_release_is_safe_to_call_at_any_time():
 
 
 # While a frame is searched, 1 MiB blocks come from the heap and stay there when freed (the
-# next array reuses them); once the frame is done the heap is trimmed, and the next blocks that
-# no freed one holds get pages of their own again (docs/decisions.md#the-heaps-thresholds).
+# next array reuses them); so they do for the next frame, and once no frame came for
+# FRAME_IDLE_S the heap is trimmed, and the next blocks that no freed one holds get pages of
+# their own again (docs/decisions.md#the-heaps-thresholds).
 FRAME = (
     CHILD
     + """
-from service.memory import fix_mmap_threshold, frame_heap
+import time
+from service.memory import FRAME_IDLE_S, fix_mmap_threshold, frame_heap
 
 def churn(mib):
     blocks, pins = [], []
@@ -119,19 +121,23 @@ fix_mmap_threshold()
 with frame_heap():
     pins, freed_in_frame = churn(1)
     before_trim = rss_mib()
+kept = before_trim - rss_mib()  # at once: the next frame's
+time.sleep(FRAME_IDLE_S + 1.0)
 after_frame = before_trim - rss_mib()
 more, freed_after = churn(2)  # larger than the heap's freed blocks
-print(json.dumps({"in_frame": freed_in_frame, "trimmed": after_frame, "after": freed_after}))
+print(json.dumps({"in_frame": freed_in_frame, "kept": kept, "trimmed": after_frame,
+                  "after": freed_after}))
 """
 )
 
 
 @pytest.mark.skipif(not GLIBC, reason="glibc only")
-def test_a_frames_arrays_stay_in_the_heap_until_the_frame_is_done():
+def test_a_frames_arrays_stay_in_the_heap_until_no_frame_comes():
     done = subprocess.run(
         [sys.executable, "-c", FRAME], capture_output=True, text=True, check=True, timeout=60
     )
     result = json.loads(done.stdout)
     assert result["in_frame"] < 32  # of 128 MiB freed: kept for the next arrays
-    assert result["trimmed"] > 96  # handed back once the frame is done
+    assert result["kept"] < 32  # ... and for the next frame's, right after this one
+    assert result["trimmed"] > 96  # handed back once no frame came for FRAME_IDLE_S
     assert result["after"] > 96  # and the fixed threshold is back: pages of their own
