@@ -15,7 +15,9 @@ Needs the runtime packages alone (``pip install -e .``). In one run it measures:
   forward's seconds, and p95 over p50.
 
 With ``--references 40 1000`` the 1,000-reference gallery (the 40 plus padding references made
-from the shipped ones, cached: ``benchmarks.align_http.padding``) is up beside the 40 one, and
+from those 40 alone, cached: ``benchmarks.align_http.padding``; never from a refused part, whose
+stretched copies would make its refusals look-alikes of registered parts) is up beside the 40
+one, and
 every sequential request goes to one then the other (the first in turn), so a machine whose load
 changes from minute to minute skews their comparison less. Every count is fixed; the figures are
 printed with the issue's targets marked PASS or FAIL on whatever machine it ran, and written
@@ -106,6 +108,19 @@ def forward_ms(mapper: Mapper, points: np.ndarray, count: int, seed: int) -> dic
         if index >= 20:
             times.append((time.perf_counter() - began) * 1e3)
     return latency_stats(times, ("count", "median_ms", "p95_ms", "min_ms"))
+
+
+def served_galleries(
+    engine: Engine, shipped: list[Reference], args: argparse.Namespace
+) -> dict[int, list[Reference]]:
+    """Each size's gallery: the first ``BASE`` shipped references, then padding made from them
+    alone. Padding made from a refused part holds stretched copies of it, and its refusals become
+    look-alikes of registered parts (docs/decisions.md#refusals-among-1000-references)."""
+    served = shipped[:BASE]
+    padding, _, _ = padding_references(
+        engine, served, max(args.references) - BASE, args.padding_cache, args.padding_workers
+    )
+    return {size: (served + padding)[:size] for size in args.references}
 
 
 def bodies(shipped: list[Reference], seed: int) -> dict[str, list[Cloud]]:
@@ -217,6 +232,7 @@ def run(args: argparse.Namespace) -> dict:
             "onnxruntime": ort.__version__,
             "engine_settings": settings.engine.model_dump(mode="json"),
             "bodies": {kind: len(clouds) for kind, clouds in made.items()},
+            "refused_parts": sorted({cloud.label for cloud in made["refusal"]}),
             "load_average_at_start": os.getloadavg(),
         },
         "targets": TARGETS,
@@ -234,10 +250,10 @@ def run(args: argparse.Namespace) -> dict:
         for provider in args.providers
     }
     engine = Engine(mappers[args.providers[0]], settings.engine, load_calibration(settings))
-    padding, _, _ = padding_references(
-        engine, shipped, max(args.references) - BASE, args.padding_cache, args.padding_workers
-    )
-    galleries = {size: (shipped[:BASE] + padding)[:size] for size in args.references}
+    galleries = served_galleries(engine, shipped, args)
+    report["config"]["galleries"] = {
+        size: [r.name for r in gallery] for size, gallery in galleries.items()
+    }
     with tempfile.TemporaryDirectory(prefix="dpc-speed-") as tmp:
         for provider, mapper in mappers.items():
             forward = forward_ms(mapper, shipped[0].points, args.forwards, args.seed)

@@ -41,7 +41,12 @@ def test_a_tiny_run_reports_every_figure_for_two_galleries(tmp_path, capsys):
     printed = capsys.readouterr().out
     for name in speed.TARGETS:
         assert name in printed
-    (run,) = json.loads(out.read_text())["runs"]
+    report = json.loads(out.read_text())
+    served, padded = report["config"]["galleries"]["40"], report["config"]["galleries"]["41"]
+    assert padded[:40] == served and padded[40].startswith("pad-0000-")
+    assert not set(served) & set(report["config"]["refused_parts"])  # refusals: not registered
+    assert padded[40].split("-", 2)[2] in served  # padding made from the served parts alone
+    (run,) = report["runs"]
     assert run["provider"] == "cpu" and run["forward"]["count"] == 5
     assert list(run["figures"]) == ["40", "41"]  # JSON keys
     for figures in run["figures"].values():
