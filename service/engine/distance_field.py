@@ -54,20 +54,21 @@ class DistanceField:
 
     def lookup(self, points: np.ndarray) -> np.ndarray:
         """Index of the reference point nearest to each of ``points`` (..., 3), model frame."""
-        cells = np.rint((points - self.origin) / self.voxel).astype(np.intp)
-        # past the edge: the edge voxel (the ufuncs themselves: np.clip's wrapper costs more)
-        np.minimum(np.maximum(cells, 0, out=cells), self._last, out=cells)
-        flat = cells @ self._strides
+        cells = np.rint((points - self.origin) / self.voxel)
+        # past the edge: the edge voxel (the ufuncs themselves: np.clip's wrapper costs more;
+        # fmax and fmin take a NaN to voxel 0); whole numbers in floats: BLAS flattens them
+        np.fmin(np.fmax(cells, 0, out=cells), self._last, out=cells)
+        flat = (cells @ self._strides).astype(np.intp)
         return np.take(self.nearest, flat)  # flattened; a third of indexing's time
 
     @cached_property
     def _last(self) -> np.ndarray:
-        return np.array(self.nearest.shape, dtype=np.intp) - 1
+        return np.array(self.nearest.shape, dtype=np.float64) - 1
 
     @cached_property
     def _strides(self) -> np.ndarray:
         shape = self.nearest.shape
-        return np.array([shape[1] * shape[2], shape[2], 1], dtype=np.intp)
+        return np.array([shape[1] * shape[2], shape[2], 1], dtype=np.float64)
 
     @property
     def nbytes(self) -> int:

@@ -20,13 +20,13 @@ to it, but across a thin wall the nearest sample is as often the far side's
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from service.engine.alignment import to_model_frame
 from service.engine.distance_field import DistanceField
-from service.engine.normalize import lengths
 from service.engine.tuning import BACK_FACING, BEHIND, CLOSE, CLOSE_RAD, SURFACE_NEIGHBOURS
 
 TUKEY = 4.685  # Tukey's constant: 95 % efficiency on Gaussian residuals
@@ -79,31 +79,58 @@ class Surface:
         the nearest where they all do)."""
         # np.take: a third of indexing's time here (docs/decisions.md#refinements-together)
         candidates = np.take(self.neighbours, self.field.lookup(points), axis=0)  # (..., k)
-        offsets = points[..., None, :] - np.take(self.points, candidates, axis=0)
-        square = np.einsum("...ki,...ki->...k", offsets, offsets)
         if facing:
+            offsets = points[..., None, :] - np.take(self.points, candidates, axis=0)
+            square = np.einsum("...ki,...ki->...k", offsets, offsets)
             along = np.einsum(
                 "...ki,...ki->...k", offsets, np.take(self.normals, candidates, axis=0)
             )
             behind = along < -BEHIND * self.spacing
             square[behind & ~behind.all(axis=-1, keepdims=True)] = np.inf
+        else:  # |q|^2 - 2 p.q orders them as |p - q|^2 does: no (..., k, 3) arrays, 0.4x time
+            square = np.take(self._squares, candidates)
+            twice = -2.0 * points
+            for axis, column in enumerate(self._columns):
+                term = np.take(column, candidates)
+                term *= twice[..., axis, None]
+                square += term
         if camera is not None:
             away = self.facing_away(np.asarray(camera, np.float64))
             if away.ndim == 1:
                 away = np.take(away, candidates)
-            else:  # a camera each of the leading rows of ``points``
-                rows = np.arange(len(away)).reshape(-1, *([1] * (candidates.ndim - 1)))
-                away = away[rows, candidates]
+            else:  # a camera each of the leading rows of ``points``: row h's at h * N
+                rows = np.arange(0, away.size, away.shape[1])
+                away = np.take(away, candidates + rows.reshape(-1, *([1] * (candidates.ndim - 1))))
             square[away & ~away.all(axis=-1, keepdims=True)] = np.inf
         best = np.argmin(square, axis=-1)
-        return np.take_along_axis(candidates, best[..., None], axis=-1)[..., 0]
+        count = candidates.shape[-1]  # each point's pick, by its flat index: no index grids
+        picked = np.take(candidates, np.arange(0, candidates.size, count) + best.ravel())
+        return picked.reshape(best.shape)
+
+    @cached_property
+    def _squares(self) -> np.ndarray:
+        """(N,) each sample's squared distance from the origin (``nearest``)."""
+        return np.einsum("ni,ni->n", self.points, self.points)
+
+    @cached_property
+    def _offsets(self) -> np.ndarray:
+        """(N,) each sample's tangent plane's offset, p . n (``facing_away``)."""
+        return np.einsum("ni,ni->n", self.points, self.normals)
+
+    @cached_property
+    def _columns(self) -> tuple[np.ndarray, ...]:
+        """The samples' x, y and z, each contiguous (``nearest``)."""
+        return tuple(np.ascontiguousarray(self.points[:, axis]) for axis in range(3))
 
     def facing_away(self, camera: np.ndarray) -> np.ndarray:
         """(..., N) whether each sample faces away from ``camera`` (..., 3), model frame
         (``BACK_FACING``): the same for every point paired with it, so asked once a sample."""
-        sight = camera[..., None, :] - self.points
-        toward = np.einsum("...ni,ni->...n", sight, self.normals)
-        return toward < -BACK_FACING * lengths(sight)
+        # (c - p).n and |c - p|^2 from products with the samples: no (..., N, 3) arrays
+        toward = camera @ self.normals.T - self._offsets
+        square = (camera @ self.points.T) * -2.0
+        square += self._squares
+        square += np.einsum("...i,...i->...", camera, camera)[..., None]
+        return toward < -BACK_FACING * np.sqrt(np.maximum(square, 0.0, out=square), out=square)
 
 
 def rotation_vector(w: np.ndarray) -> np.ndarray:

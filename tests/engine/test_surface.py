@@ -19,6 +19,7 @@ from service.engine.principal_axes import Frame
 from service.engine.sampling import sample_surface_faces
 from service.engine.surroundings import groups
 from service.engine.symmetry import FINE_DEG, Symmetry, _group, apart, find_symmetry
+from service.engine.tuning import BACK_FACING
 from service.engine.verification import (
     Occupancy,
     coverage,
@@ -241,6 +242,28 @@ def test_a_camera_for_each_row_of_points_is_each_rows_own(bracket):
     for row, camera, mine in zip(rows, cameras, together, strict=True):
         np.testing.assert_array_equal(mine, bracket.nearest(row, camera=camera))
     assert not np.array_equal(together[0], bracket.nearest(rows[0]))  # the camera mattered
+
+
+def test_the_nearest_sample_is_the_nearest_of_its_candidates_that_faces_the_camera(bracket):
+    """``Surface.nearest`` orders a point's candidates (the neighbours of the field's sample)
+    as their distances do, leaving out those facing away from the camera (``BACK_FACING``)
+    unless all do: the definition, written out on the offsets, for one camera and a camera
+    a row."""
+    rng = np.random.default_rng(11)
+    rows = bracket.points[rng.integers(0, len(bracket.points), (4, 300))]
+    rows = rows + rng.normal(scale=bracket.spacing, size=rows.shape)
+    cameras = rng.normal(size=(4, 3)) * 0.3
+    candidates = bracket.neighbours[bracket.field.lookup(rows)]  # (4, 300, k)
+    offsets = rows[..., None, :] - bracket.points[candidates]
+    square = np.sum(offsets**2, axis=-1)
+    sight = cameras[:, None, None, :] - bracket.points[candidates]
+    cosine = np.sum(sight * bracket.normals[candidates], axis=-1) / np.linalg.norm(sight, axis=-1)
+    away = cosine < -BACK_FACING
+    seen = np.where(away & ~away.all(axis=-1, keepdims=True), np.inf, square)
+    for told, expected in ((None, square), (cameras, seen)):
+        best = np.take_along_axis(candidates, np.argmin(expected, -1)[..., None], -1)[..., 0]
+        np.testing.assert_array_equal(bracket.nearest(rows, camera=told), best)
+    assert np.any(away & ~away.all(axis=-1, keepdims=True))  # the cameras left some out
 
 
 def test_refinement_told_the_viewpoint_pairs_no_point_with_a_wall_facing_away():
