@@ -19,6 +19,7 @@ to it, but across a thin wall the nearest sample is as often the far side's
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -135,12 +136,20 @@ class Surface:
 
 def rotation_vector(w: np.ndarray) -> np.ndarray:
     """Rodrigues: the rotation by ``|w|`` about ``w``."""
-    angle = float(np.linalg.norm(w))
+    x, y, z = (float(v) for v in w)
+    angle = math.sqrt(x * x + y * y + z * z)
     if angle < 1e-12:
         return np.eye(3)
-    k = w / angle
-    cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
+    x, y, z = x / angle, y / angle, z / angle
+    s, c = math.sin(angle), math.cos(angle)
+    t = 1.0 - c  # I + sin K + (1 - cos) K^2, K^2 = k k^T - I, written out: a 3x3 from floats
+    return np.array(
+        [
+            [c + t * x * x, t * x * y - s * z, t * x * z + s * y],
+            [t * x * y + s * z, c + t * y * y, t * y * z - s * x],
+            [t * x * z - s * y, t * y * z + s * x, c + t * z * z],
+        ]
+    )
 
 
 @dataclass(frozen=True)
@@ -204,9 +213,11 @@ def icp(
         offset = model - np.take(surface.points, nearest, axis=0)
         normals = np.take(surface.normals, nearest, axis=0)
         near = np.einsum("ij,ij->i", offset, offset) < gate**2
-        if near.sum() < 6:
+        kept = np.count_nonzero(near)
+        if kept < 6:
             break
-        model, offset, normals = model[near], offset[near], normals[near]
+        if kept < len(near):  # most iterations keep every pair: no copies then
+            model, offset, normals = model[near], offset[near], normals[near]
         residual = np.einsum("ij,ij->i", offset, normals)
         spread = max(1.4826 * _median(np.abs(residual)), noise)
         u = residual / (TUKEY * spread)
@@ -214,12 +225,12 @@ def icp(
         jacobian = _jacobian(model, normals)  # (M, 6)
         weighted = jacobian * weight[:, None]
         system = weighted.T @ jacobian
-        system[np.diag_indices(6)] += DAMPING * np.trace(system) + 1e-12
+        system[DIAGONAL, DIAGONAL] += DAMPING * system.trace() + 1e-12
         step = -np.linalg.solve(system, weighted.T @ residual)
         correction = rotation_vector(step[:3])  # model points m -> C m + d
         rotation = rotation @ correction.T
         translation = translation - rotation @ step[3:]
-        turned, moved = np.linalg.norm(step[:3]), np.linalg.norm(step[3:])
+        turned, moved = math.sqrt(step[:3] @ step[:3]), math.sqrt(step[3:] @ step[3:])
         if turned < CLOSE_RAD and moved < CLOSE * noise:
             if precise and turned < tolerance_rad and moved < tolerance * noise:
                 break
@@ -370,9 +381,16 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
     k k^T, K the cross-product matrix of the unit axis k (``rotation_vector`` for many)."""
     angle = np.sqrt(np.einsum("hi,hi->h", w, w))
     k = w / np.where(angle < 1e-12, 1.0, angle)[:, None]  # no turn: k ~ 0, the identity
-    cos, sin = np.cos(angle)[:, None, None], np.sin(angle)[:, None, None]
-    cross = cross_matrices(k)
-    return cos * np.eye(3) + sin * cross + (1 - cos) * (k[:, :, None] * k[:, None, :])
+    c, s = np.cos(angle), np.sin(angle)
+    t = 1.0 - c
+    x, y, z = k.T
+    turns = np.empty((len(w), 3, 3))  # written out entry by entry, as ``rotation_vector``
+    turns[:, 0, 0], turns[:, 1, 1], turns[:, 2, 2] = c + t * x * x, c + t * y * y, c + t * z * z
+    xy, xz, yz = t * x * y, t * x * z, t * y * z
+    turns[:, 0, 1], turns[:, 1, 0] = xy - s * z, xy + s * z
+    turns[:, 0, 2], turns[:, 2, 0] = xz + s * y, xz - s * y
+    turns[:, 1, 2], turns[:, 2, 1] = yz - s * x, yz + s * x
+    return turns
 
 
 def cross_matrices(vectors: np.ndarray) -> np.ndarray:
