@@ -59,7 +59,7 @@ class DistanceField:
         # fmax and fmin take a NaN to voxel 0); whole numbers in floats: BLAS flattens them
         np.fmin(np.fmax(cells, 0, out=cells), self._last, out=cells)
         flat = (cells @ self._strides).astype(np.intp)
-        return np.take(self.nearest, flat)  # flattened; a third of indexing's time
+        return self.nearest.take(flat)  # flattened; a third of indexing's time
 
     @cached_property
     def _last(self) -> np.ndarray:

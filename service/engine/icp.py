@@ -78,34 +78,33 @@ class Surface:
         With ``camera`` (a point in the model frame; or (S, 3), one each of the S leading rows
         of ``points``), the nearest of those that do not face away from it (``BACK_FACING``;
         the nearest where they all do)."""
-        # np.take: a third of indexing's time here (docs/decisions.md#refinements-together)
-        candidates = np.take(self.neighbours, self.field.lookup(points), axis=0)  # (..., k)
+        # take: a third of indexing's time here (docs/decisions.md#refinements-together); the
+        # array's own method, without np.take's wrapper (a microsecond a call)
+        candidates = self.neighbours.take(self.field.lookup(points), axis=0)  # (..., k)
         if facing:
-            offsets = points[..., None, :] - np.take(self.points, candidates, axis=0)
+            offsets = points[..., None, :] - self.points.take(candidates, axis=0)
             square = np.einsum("...ki,...ki->...k", offsets, offsets)
-            along = np.einsum(
-                "...ki,...ki->...k", offsets, np.take(self.normals, candidates, axis=0)
-            )
+            along = np.einsum("...ki,...ki->...k", offsets, self.normals.take(candidates, axis=0))
             behind = along < -BEHIND * self.spacing
             square[behind & ~behind.all(axis=-1, keepdims=True)] = np.inf
         else:  # |q|^2 - 2 p.q orders them as |p - q|^2 does: no (..., k, 3) arrays, 0.4x time
-            square = np.take(self._squares, candidates)
+            square = self._squares.take(candidates)
             twice = -2.0 * points
             for axis, column in enumerate(self._columns):
-                term = np.take(column, candidates)
+                term = column.take(candidates)
                 term *= twice[..., axis, None]
                 square += term
         if camera is not None:
             away = self.facing_away(np.asarray(camera, np.float64))
             if away.ndim == 1:
-                away = np.take(away, candidates)
+                away = away.take(candidates)
             else:  # a camera each of the leading rows of ``points``: row h's at h * N
                 rows = np.arange(0, away.size, away.shape[1])
-                away = np.take(away, candidates + rows.reshape(-1, *([1] * (candidates.ndim - 1))))
+                away = away.take(candidates + rows.reshape(-1, *([1] * (candidates.ndim - 1))))
             square[away & ~away.all(axis=-1, keepdims=True)] = np.inf
         best = np.argmin(square, axis=-1)
         count = candidates.shape[-1]  # each point's pick, by its flat index: no index grids
-        picked = np.take(candidates, np.arange(0, candidates.size, count) + best.ravel())
+        picked = candidates.take(np.arange(0, candidates.size, count) + best.ravel())
         return picked.reshape(best.shape)
 
     @cached_property
@@ -210,8 +209,8 @@ def icp(
             nearest = surface.nearest(model, camera=camera)
         else:
             nearest = surface.field.lookup(model)
-        offset = model - np.take(surface.points, nearest, axis=0)
-        normals = np.take(surface.normals, nearest, axis=0)
+        offset = model - surface.points.take(nearest, axis=0)
+        normals = surface.normals.take(nearest, axis=0)
         near = np.einsum("ij,ij->i", offset, offset) < gate**2
         kept = np.count_nonzero(near)
         if kept < 6:
@@ -373,7 +372,7 @@ def _nearest(
         toward = viewpoints - translation[slots]
         cameras = np.einsum("hi,hij->hj", toward, rotation[slots])  # (v - t) @ R, each
         nearest = surface.nearest(model, camera=cameras)
-    return np.take(surface.points, nearest, axis=0), np.take(surface.normals, nearest, axis=0)
+    return surface.points.take(nearest, axis=0), surface.normals.take(nearest, axis=0)
 
 
 def _rodrigues(w: np.ndarray) -> np.ndarray:

@@ -65,7 +65,7 @@ class Occupancy:
         """Whether an observed point lies within about a voxel of each of ``points`` (..., 3)."""
         cells = np.floor((points - self.low) / self.voxel).astype(np.intp)
         np.minimum(np.maximum(cells, 0, out=cells), self.last, out=cells)  # as np.clip, faster
-        return np.take(self.grid, cells @ self.strides)
+        return self.grid.take(cells @ self.strides)
 
 
 def dilate_along(grid: np.ndarray, axis: int) -> np.ndarray:
@@ -100,8 +100,8 @@ def patch_distance(surface: Surface, model_points: np.ndarray, nearest: np.ndarr
     """Distance from each point to the tangent patch of its surface sample ``nearest``: to the
     tangent plane within ``PATCH_SPACINGS`` spacings of the sample, beyond that also across."""
     patch = PATCH_SPACINGS * surface.spacing
-    offset = model_points - np.take(surface.points, nearest, axis=0)
-    along = np.einsum("...i,...i->...", offset, np.take(surface.normals, nearest, axis=0))
+    offset = model_points - surface.points.take(nearest, axis=0)
+    along = np.einsum("...i,...i->...", offset, surface.normals.take(nearest, axis=0))
     across = np.sqrt(np.maximum(np.einsum("...i,...i->...", offset, offset) - along**2, 0.0))
     return np.sqrt(along**2 + np.maximum(across - patch, 0.0) ** 2)
 
