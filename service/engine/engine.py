@@ -45,13 +45,7 @@ from service.engine.grid import grid
 from service.engine.icp import Surface
 from service.engine.look_alikes import doubt, relation
 from service.engine.mapping import Mapper
-from service.engine.normalize import (
-    has_extent,
-    no_larger,
-    normalize,
-    radius,
-    subsample,
-)
+from service.engine.normalize import has_extent, no_larger, normalize, radius, subsample
 from service.engine.normals import estimate_normals, mesh_normals, orient_by_views
 from service.engine.principal_axes import flatness, one_line, thinness
 from service.engine.projection import DepthImage
