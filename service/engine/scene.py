@@ -42,6 +42,8 @@ from service.engine.segments import adjacent, cell_groups, segments
 from service.engine.supports import Noise, Support
 from service.engine.templates import likeliest, place_views
 from service.engine.tuning import (
+    ALIKE_EXPLAINED,
+    ALIKE_THROUGH,
     CHAIN_AGREES,
     CLAIM_TOLERANCE,
     DUPLICATE_GAP,
@@ -678,6 +680,7 @@ class Scan:
         if instance is None:
             return None
         instance = self.turned(instance, chain, claim)
+        instance = self.told_apart(instance, chain, claim, sigma)
         doubted = instance.answer.verdict != "match"
         if again and doubted and instance.answer.confidence >= INSTANCE_FLOOR:
             instance = self.asked_again(region, instance, sigma)
@@ -735,6 +738,55 @@ class Scan:
         other = self.posed(again, instance.entry, claim)
         better = other is not None and other.answer.confidence > instance.answer.confidence
         return other if better else instance
+
+    def told_apart(
+        self, instance: Instance, chain: Alignment, claim: Claim, sigma: float
+    ) -> Instance:
+        """An instance whose look-alikes fit alike (``doubt``), posed as each of them too, at
+        the chain's pose for it: where one part explains ``ALIKE_EXPLAINED`` more of its
+        region's points than each other, and the camera sees through it no more than
+        ``ALIKE_THROUGH`` more, the frame tells them apart (a part with a face the other
+        lacks: the chain, on its sample, weighs the points that face adds no more than the
+        coverage it costs the other). That part's instance, judged on the chain's confidence
+        undivided among them; else the instance as it was
+        (docs/decisions.md#look-alikes-in-a-frame)."""
+        if not instance.answer.look_alikes or self.camera is None:
+            return instance
+        look_alikes = instance.answer.look_alikes
+        whole = min(1.0, (chain.confidence or 0.0) * (1 + len(look_alikes)))  # as ``doubt`` split
+        poses = [(instance.entry, chain.rotation, chain.translation, chain.alternatives)]
+        for other in chain.alternatives:
+            if other.label in look_alikes:
+                entry = self.query.snapshot.entries[other.label]
+                poses.append((entry, other.rotation, other.translation, []))
+        posed = []
+        for entry, rotation, translation, alternatives in poses:
+            alone = [a for a in alternatives if a.label is None]
+            answer = replace(
+                chain,
+                label=entry.reference.name,
+                rotation=rotation,
+                translation=translation,
+                confidence=whole,
+                reasons=[r for r in chain.reasons if "look-alike" not in r],
+                alternatives=alone,
+                ambiguous=bool(alone),
+                look_alikes=[],
+            )
+            tolerance = CLAIM_TOLERANCE * self.part_tolerance(entry, sigma)
+            again = self.posed(answer, entry, replace(claim, tolerance=tolerance))
+            if again is None:  # one explains too little to be told from: the doubt stands
+                return instance
+            posed.append(again)
+        best = max(posed, key=lambda p: p.evidence["explained"])
+        for other in posed:
+            if other is best:
+                continue
+            apart = best.evidence["explained"] - other.evidence["explained"]
+            seen_through = best.evidence["through"] - other.evidence["through"]
+            if apart < ALIKE_EXPLAINED or seen_through > ALIKE_THROUGH:
+                return instance
+        return best
 
     @staticmethod
     def other_poses(instance: Instance, chain: Alignment) -> tuple[np.ndarray, np.ndarray]:

@@ -159,6 +159,9 @@ SEGMENT_RESCUED = 8  # ... trying this many more parts where none fits (a lone c
 THROUGH_DOUBT = 0.1  # an instance the camera saw through more than this is doubted
 # ... and posed again at its part's near turn the camera sees through least, below this share
 TURNED_THROUGH = 0.5
+# of look-alikes fitting alike in a frame, one explaining this much more of the region's points,
+# seen through no more than this much more, is told apart (docs/decisions.md#look-alikes-in-a-frame)
+ALIKE_EXPLAINED, ALIKE_THROUGH = 0.03, 0.05
 THROUGH_WEIGHT = 6.0  # a refined placed view: what the camera saw through counts this much
 DUPLICATE_GAP = 0.1  # two instances of a part this close (share of its scale) are one
 FRAGMENT = 0.3  # a region narrower than this share of the smallest part's scale is a fragment

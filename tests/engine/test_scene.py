@@ -669,3 +669,64 @@ def test_a_pose_the_chain_found_alike_the_camera_sees_through_less_is_posed_agai
     instance = scan.claim(region, wrong, sigma, again=False)
     assert instance is not None and angle_deg(instance.answer.rotation, rotation) < 5
     assert instance.evidence["through"] < through / 2
+
+
+def look_alikes_shot(engine: Engine, shown: str):
+    """A bar with a step on one end ("stepped") and the bar alone ("bar"), registered as
+    look-alikes (as a registration check that could not tell them apart stores them), and
+    ``shown`` of them lying on a table: the scan, its region, the sensor's noise there, and
+    the chain's answer as it gives one for look-alikes that fit alike, the other part's
+    pose an alternative with its label: ``said`` at the true pose."""
+    meshes = {"stepped": stepped_bar(), "bar": trimesh.creation.box((0.08, 0.03, 0.03))}
+    shipped = Calibration.load(SETTINGS.detect_confidence_path)
+    alike = Engine(engine.mapper, SETTINGS.engine, engine.calibration, shipped)
+    references = {}
+    for name, mesh in meshes.items():
+        points, faces = sample_surface_faces(mesh, 2048, 0)
+        references[name] = alike.make_reference(name, points, mesh=mesh, face_index=faces)
+    stepped, bar = references["stepped"], references["bar"]
+    alike.load([replace(stepped, look_alikes={"bar": bar.points_sha256}), bar])
+    assert alike.look_alikes("bar") == ("stepped",)
+
+    mesh = meshes[shown]
+    shot = shoot([(mesh, *resting(mesh, spin(25), 0.0, 0.0))], table())
+    scan, _, shows = scan_of(alike, shot)
+    region = np.flatnonzero(shows == 0)
+    sigma = scan.noise.at(scan.frame.points[region], scan.frame.viewpoint)
+    rotation, translation = shot.poses[0]
+
+    def said(label: str):
+        other = "bar" if label == "stepped" else "stepped"
+        answer = scan.answer_for(scan.frame.points[region], sigma)
+        return replace(
+            answer,
+            label=label,
+            rotation=rotation,
+            translation=translation,
+            confidence=0.45,
+            look_alikes=[other],
+            alternatives=[AlternativePose(rotation, translation, 0.0, label=other)],
+            ambiguous=True,
+        )
+
+    return scan, region, sigma, said
+
+
+def test_look_alikes_the_frame_tells_apart_are_answered_as_the_part_shown(engine):
+    # the step explains points the bar alone cannot: the frame tells the stepped bar from the
+    # bar, whichever the chain named, and the answer is no longer doubted
+    scan, region, sigma, said = look_alikes_shot(engine, "stepped")
+    for named in ("bar", "stepped"):
+        instance = scan.claim(region, said(named), sigma, again=False)
+        assert instance is not None and instance.answer.label == "stepped"
+        assert not instance.answer.look_alikes
+        assert not any("look-alike" in reason for reason in instance.answer.reasons)
+
+
+def test_look_alikes_the_frame_cannot_tell_apart_stay_doubted(engine):
+    # the bar alone: the stepped bar explains its points as well, so nothing tells them apart
+    scan, region, sigma, said = look_alikes_shot(engine, "bar")
+    instance = scan.claim(region, said("bar"), sigma, again=False)
+    assert instance is not None and instance.answer.label == "bar"
+    assert instance.answer.look_alikes == ["stepped"] and instance.answer.ambiguous
+    assert instance.answer.verdict != "match"
