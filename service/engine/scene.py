@@ -44,8 +44,6 @@ from service.engine.templates import likeliest, place_views
 from service.engine.tuning import (
     ALIKE_EXPLAINED,
     ALIKE_THROUGH,
-    APART_POINTS,
-    APART_REFINED,
     CHAIN_AGREES,
     CLAIM_TOLERANCE,
     DUPLICATE_GAP,
@@ -607,11 +605,10 @@ class Scan:
         stay as they were), the same for the same points."""
         return points[subsample(points, SEGMENT_POINTS, np.random.default_rng(len(points)))]
 
-    def ask(self, points: np.ndarray, sigma: float = 0.0, apart: int = 0) -> Alignment:
-        """The chain's answer for ``points``, nothing set aside: asked ahead, or here
-        (``apart``: with more of its best part's hypotheses refined, never asked ahead)."""
+    def ask(self, points: np.ndarray, sigma: float = 0.0) -> Alignment:
+        """The chain's answer for ``points``, nothing set aside: asked ahead, or here."""
         sent, ahead = self.asked.pop(self.ask_key(points, sigma), (None, None))
-        if ahead is not None and not apart and np.array_equal(sent, points):
+        if ahead is not None and np.array_equal(sent, points):
             try:
                 answer = ahead.result()
             except Exception:  # the other process failed it (a worker died): asked here
@@ -620,7 +617,7 @@ class Scan:
                 if answer.label in self.query.snapshot.entries:
                     return answer
         candidates, kwargs = self.asking(sigma)
-        return self.align(points, candidates, **kwargs, apart=apart)
+        return self.align(points, candidates, **kwargs)
 
     def template_parts(self, points: np.ndarray, spacing: float) -> list[Entry]:
         """The parts to place over a segment: of those that fit inside it and are not far
@@ -809,24 +806,11 @@ class Scan:
         """A posed instance the frame does not confirm, with the chain asked once more about
         just the points it claims: a segment's sample may have posed it poorly, or its
         neighbours' points misled the search (docs/decisions.md#detect). The more confident
-        of the two; the search's own draws are left as they were. Where that is no match,
-        claims ``APART_POINTS`` and the camera sees through it, asked once more with more of
-        its part's own poses refined, and taken if that is a match."""
-        sample = self.another_sample(self.frame.points[instance.claimed])
-        second = self.claim(region, self.ask(sample, sigma), sigma, False)
-        if second is not None and second.answer.confidence > instance.answer.confidence:
-            instance = second
-        doubted = instance.evidence["through"] > THROUGH_DOUBT
-        if (
-            instance.answer.verdict == "match"
-            or not doubted
-            or len(instance.claimed) < APART_POINTS
-        ):
-            return instance
-        # still seen through: another pose of the part, which more of its hypotheses refined
-        # may hold; taken only as a match (docs/decisions.md#seen-through-searched-again)
-        third = self.claim(region, self.ask(sample, sigma, APART_REFINED), sigma, False)
-        return third if third is not None and third.answer.verdict == "match" else instance
+        of the two; the search's own draws are left as they were."""
+        points = self.frame.points[instance.claimed]
+        second = self.claim(region, self.ask(self.another_sample(points), sigma), sigma, False)
+        better = second is not None and second.answer.confidence > instance.answer.confidence
+        return second if better else instance
 
     def finish(self, answer: Alignment, entry: Entry, points: np.ndarray, tolerance: float):
         """``answer``'s pose refined by ICP on (a sample of) the points it claims, told where

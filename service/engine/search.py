@@ -29,7 +29,6 @@ from service.engine.symmetry import FINE_DEG, apart
 from service.engine.tuning import (
     ALIKE,
     ALONE_FROM,
-    APART_DEG,
     DIFFERENT_DEG,
     ENOUGH_BEHIND,
     EXPECTED,
@@ -191,8 +190,6 @@ class Search:
             self.refine_all(firsts)
             per_row[plan.first] += len(firsts)
             refined += firsts
-        if plan.rescue and self.query.apart:
-            refined += self.refine_apart(fits, refined)
         if plan.rescue and self.rescued_parts:
             self.rescue(fits, per_row, refined)
 
@@ -225,29 +222,6 @@ class Search:
             best = max((f.score for f in turn), default=0.0)
             turn += self.refine_in_turn(planned[head:], stops, best)
         return turn + sure
-
-    def refine_apart(self, fits: list[Fit], refined: list[Fit]) -> list[Fit]:
-        """Where no refined fit is excellent, the best refined part's own hypotheses that lie
-        more than ``APART_DEG`` from each of its refined poses and from each other (its
-        symmetry aside), ``query.apart`` at most, refined in turn: the two refined may both
-        be a wrong pose, as a link's ends that look alike before refining
-        (docs/decisions.md#seen-through-searched-again). Those refined."""
-        best = max(refined, key=lambda f: f.score, default=None)
-        excellent = self.settings.excellent
-        if best is None or best.score >= excellent:
-            return []
-        symmetry = self.entry(best.row).symmetry
-        poses = [f.rotation for f in refined if f.row == best.row]
-        planned: list[Fit] = []
-        for candidate in fits:  # best first
-            if len(planned) == self.query.apart:
-                break
-            if candidate.row != best.row or candidate.refined:
-                continue
-            if all(symmetry.distance_deg(candidate.rotation, r) > APART_DEG for r in poses):
-                planned.append(candidate)
-                poses.append(candidate.rotation)
-        return self.refine_in_turn(planned, lambda _, so_far: so_far >= excellent, best.score)
 
     @property
     def rescued_parts(self) -> int:

@@ -62,7 +62,6 @@ PER_PART = 2  # hypotheses refined of one part in a pass
 FIRST_REFINED = 1  # hypotheses of eq. (4)'s sure first choice refined in any case
 RESCUE_BELOW = 0.7  # no refined fit x coverage this high: more parts are rescued
 RESCUE_EACH = 2  # hypotheses refined of each rescued part
-APART_DEG = 45.0  # a part's hypothesis this far from its refined ones may be another minimum
 # a cloud's hidden share (visibility.hidden_share): of this many points, cells this many point
 # spacings wide, nearer by this many spacings (docs/decisions.md#a-whole-parts-cloud)
 HIDDEN_POINTS, HIDDEN_CELL, HIDDEN_DEPTH = 512, 1.5, 4.0
@@ -158,9 +157,6 @@ TEMPLATE_ICP_POINTS = 384  # a placed view is refined on this many of the points
 SEGMENT_POINTS = 4096  # the chain answers a segment from this many of its points at most
 SEGMENT_RESCUED = 8  # ... trying this many more parts where none fits (a lone cloud: 4)
 THROUGH_DOUBT = 0.1  # an instance the camera saw through more than this is doubted
-# ... and, claiming this many points at least, asked about again with this many more of its
-# part's own poses refined (docs/decisions.md#seen-through-searched-again)
-APART_POINTS, APART_REFINED = 2000, 4
 # ... and posed again at its part's near turn the camera sees through least, below this share
 TURNED_THROUGH = 0.5
 # of look-alikes fitting alike in a frame, one explaining this much more of the region's points,
