@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Iterable
+from dataclasses import replace
 
 from service.engine.answer import Alignment
 from service.engine.reference import Reference
@@ -86,12 +87,37 @@ def doubt(answer: Alignment, share: bool = True) -> None:
             alternative.confidence = answer.confidence
     if answer.verdict == "match":
         answer.verdict = "uncertain"
+    reason = _doubt_reason(answer)
+    said_again = tuple(f"{other} fits almost as well" for other in answer.look_alikes)
+    kept = [r for r in answer.reasons if not r.startswith(said_again) and r != reason]
+    answer.reasons = [*kept, reason]
+
+
+def undoubted(answer: Alignment) -> Alignment:
+    """A copy of ``answer`` as it was before ``doubt`` (shared): its confidence undivided among
+    its look-alikes, no reason naming them, and of its alternatives only its own part's poses.
+    Where something other than the answer tells the parts apart (a frame:
+    ``scene.Scan.told_apart``)."""
+    alone = [a for a in answer.alternatives if a.label is None]
+    confidence = answer.confidence
+    if confidence is not None:
+        confidence = min(1.0, confidence * (1 + len(answer.look_alikes)))
+    reason = _doubt_reason(answer)
+    return replace(
+        answer,
+        confidence=confidence,
+        reasons=[r for r in answer.reasons if r != reason],
+        alternatives=alone,
+        ambiguous=bool(alone),
+        look_alikes=[],
+    )
+
+
+def _doubt_reason(answer: Alignment) -> str:
+    """The reason ``doubt`` gives ``answer``, naming its look-alikes."""
     others = ", ".join(answer.look_alikes)
-    reason = (
+    return (
         f"{answer.label} and its look-alike{'s' * (len(answer.look_alikes) > 1)} {others} fit "
         "alike (see alternatives, with their labels): no view tells them apart; send "
         "candidates naming the part the cell expects, or delete a duplicate registration"
     )
-    said_again = tuple(f"{other} fits almost as well" for other in answer.look_alikes)
-    kept = [r for r in answer.reasons if not r.startswith(said_again) and r != reason]
-    answer.reasons = [*kept, reason]

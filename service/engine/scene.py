@@ -34,7 +34,7 @@ from service.engine.confidence import Calibration, from_log_odds, log_odds
 from service.engine.entry import Entry
 from service.engine.frame import Frame
 from service.engine.icp import Start, icp_many
-from service.engine.look_alikes import doubt
+from service.engine.look_alikes import doubt, undoubted
 from service.engine.normalize import radius, squared_distances, subsample
 from service.engine.projection import DepthImage
 from service.engine.query import Query, Stopwatch
@@ -752,27 +752,23 @@ class Scan:
         (docs/decisions.md#look-alikes-in-a-frame)."""
         if not instance.answer.look_alikes or self.camera is None:
             return instance
-        look_alikes = instance.answer.look_alikes
-        whole = min(1.0, (chain.confidence or 0.0) * (1 + len(look_alikes)))  # as ``doubt`` split
-        poses = [(instance.entry, chain.rotation, chain.translation, chain.alternatives)]
+        alone = undoubted(chain)
+        answers = [alone]
         for other in chain.alternatives:
-            if other.label in look_alikes:
-                entry = self.query.snapshot.entries[other.label]
-                poses.append((entry, other.rotation, other.translation, []))
+            if other.label in instance.answer.look_alikes:
+                answers.append(
+                    replace(
+                        alone,
+                        label=other.label,
+                        rotation=other.rotation,
+                        translation=other.translation,
+                        alternatives=[],  # its own other poses were not searched
+                        ambiguous=False,
+                    )
+                )
         posed = []
-        for entry, rotation, translation, alternatives in poses:
-            alone = [a for a in alternatives if a.label is None]
-            answer = replace(
-                chain,
-                label=entry.reference.name,
-                rotation=rotation,
-                translation=translation,
-                confidence=whole,
-                reasons=[r for r in chain.reasons if "look-alike" not in r],
-                alternatives=alone,
-                ambiguous=bool(alone),
-                look_alikes=[],
-            )
+        for answer in answers:
+            entry = self.query.snapshot.entries[answer.label]
             tolerance = CLAIM_TOLERANCE * self.part_tolerance(entry, sigma)
             again = self.posed(answer, entry, replace(claim, tolerance=tolerance))
             if again is None:  # one explains too little to be told from: the doubt stands
