@@ -52,6 +52,14 @@ class Frame:
         return np.stack([2 * np.outer(axis, axis) - np.eye(3) for axis in self.axes.T])
 
     @cached_property
+    def quarter_turns(self) -> np.ndarray:
+        """(9, 3, 3) the turns by a quarter, a half and three quarters about each principal
+        axis."""
+        angles = np.radians([90.0, 180.0, 270.0])
+        vectors = angles[None, :, None] * self.axes.T[:, None, :]  # (3 axes, 3 angles, 3)
+        return Rotation.from_rotvec(vectors.reshape(-1, 3)).as_matrix()
+
+    @cached_property
     def matched(self) -> np.ndarray:
         """(K, 3, 3) the frames the principal-axes hypotheses carry onto an observation's:
         this frame, and where two spreads are alike (``ROUND_SPREADS``) this frame turned about

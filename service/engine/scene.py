@@ -69,6 +69,9 @@ from service.engine.tuning import (
     TEMPLATE_POOL,
     TEMPLATE_SIZES,
     THROUGH_DOUBT,
+    TURNED_EXPLAINED,
+    TURNED_FLOOR,
+    TURNED_POINTS,
     TURNED_THROUGH,
     WIDER,
 )
@@ -688,12 +691,19 @@ class Scan:
             return None
         return instance
 
-    def posed(self, answer: Alignment, entry: Entry, claim: Claim) -> Instance | None:
+    def posed(
+        self,
+        answer: Alignment,
+        entry: Entry,
+        claim: Claim,
+        rng: np.random.Generator | None = None,
+    ) -> Instance | None:
         """``answer``'s pose finished on the points its claim holds (the chain saw a sample of
-        a region), as an instance claiming the free points near it, judged; None if it
-        explains fewer than ``MIN_EXPLAINED`` of the region."""
+        a region; drawn by ``rng``, else the search's generator), as an instance claiming the
+        free points near it, judged; None if it explains fewer than ``MIN_EXPLAINED`` of the
+        region."""
         tolerance = claim.tolerance
-        self.finish(answer, entry, claim.points, tolerance / CLAIM_TOLERANCE)
+        self.finish(answer, entry, claim.points, tolerance / CLAIM_TOLERANCE, rng)
         claimed, distance = claimable(claim.available, claim.free, entry, answer, tolerance)
         inside = int(claim.region[claimed].sum())
         if inside < MIN_EXPLAINED:
@@ -719,25 +729,73 @@ class Scan:
         ``closest`` and ``alternatives``); the more confident of the two. The chain tells
         such poses apart by how near its points lie to the surface, which hardly differs;
         what the camera saw through where the part would be does
-        (docs/decisions.md#a-near-turn-the-camera-sees-through)."""
+        (docs/decisions.md#a-near-turn-the-camera-sees-through). Where none is seen through
+        less, the instance is ``turned_over``."""
         through = instance.evidence["through"]
         if instance.answer.verdict == "match" or self.camera is None or through <= THROUGH_DOUBT:
             return instance
         rotations, translations = self.other_poses(instance, chain)
-        if not len(rotations):
+        if len(rotations):
+            best = self.least_seen_through(instance, rotations, translations, claim)
+            if best is not None:
+                again = replace(chain, rotation=rotations[best], translation=translations[best])
+                other = self.posed(again, instance.entry, claim)
+                better = other is not None and other.answer.confidence > instance.answer.confidence
+                return other if better else instance
+        return self.turned_over(instance, chain, claim)
+
+    def turned_over(self, instance: Instance, chain: Alignment, claim: Claim) -> Instance:
+        """A doubted instance that no other pose of ``turned`` explains better, turned by a
+        quarter, a half and three quarters about each of its part's principal axes, each
+        refined on the claim's points: where the camera sees through the best of them under
+        ``TURNED_THROUGH`` as much, and it is a match explaining as much of the region (to
+        within ``TURNED_EXPLAINED``), that instance. Not tried where the frame gives the
+        instance little chance (``TURNED_FLOOR``: mostly another part's points). A
+        part whose ends look alike (a robot's link) is often posed a quarter turn off about its
+        length, and no near turn names that (docs/decisions.md#turned-over)."""
+        entry, answer = instance.entry, instance.answer
+        if answer.confidence < TURNED_FLOOR:
             return instance
-        # at the tolerance of the instance's own evidence
-        viewpoint, camera = self.frame.viewpoint, self.camera
-        _, shares = seen_through(
-            instance.entry, rotations, translations, viewpoint, camera, claim.tolerance
+        frame = entry.frame
+        rotations, translations = turned_about(
+            answer.rotation, answer.translation, frame.quarter_turns, frame.centroid
         )
-        best = int(np.argmin(shares))
-        if shares[best] >= TURNED_THROUGH * through:
+        # drawn apart from the search's own draws, which stay as they were: a turn not kept
+        # changes nothing after it
+        points = claim.points
+        sample = points[subsample(points, TURNED_POINTS, np.random.default_rng(len(points)))]
+        tolerance = claim.tolerance / CLAIM_TOLERANCE
+        starts = [
+            Start.at_tolerance(
+                entry.surface, r, t, tolerance, FINISH_ITERATIONS, self.frame.viewpoint
+            )
+            for r, t in zip(rotations, translations, strict=True)
+        ]
+        refined = icp_many(sample, starts)
+        rotations = np.stack([r for r, _, _ in refined])
+        translations = np.stack([t for _, t, _ in refined])
+        best = self.least_seen_through(instance, rotations, translations, claim)
+        if best is None:
             return instance
         again = replace(chain, rotation=rotations[best], translation=translations[best])
-        other = self.posed(again, instance.entry, claim)
-        better = other is not None and other.answer.confidence > instance.answer.confidence
-        return other if better else instance
+        other = self.posed(again, entry, claim, np.random.default_rng(len(points)))
+        if other is None or other.answer.verdict != "match":
+            return instance
+        # a pose the camera sees through less may lie behind what it sees: it explains less
+        short = instance.evidence["explained"] - other.evidence["explained"]
+        return other if short <= TURNED_EXPLAINED else instance
+
+    def least_seen_through(
+        self, instance: Instance, rotations: np.ndarray, translations: np.ndarray, claim: Claim
+    ) -> int | None:
+        """Of the poses (K, 3, 3), (K, 3), the one the camera sees through least, where under
+        ``TURNED_THROUGH`` as much as the instance (at the tolerance of its own evidence)."""
+        _, shares = seen_through(
+            instance.entry, rotations, translations, self.frame.viewpoint, self.camera,
+            claim.tolerance,
+        )  # fmt: skip
+        best = int(np.argmin(shares))
+        return best if shares[best] < TURNED_THROUGH * instance.evidence["through"] else None
 
     def told_apart(
         self, instance: Instance, chain: Alignment, claim: Claim, sigma: float
@@ -808,11 +866,18 @@ class Scan:
         better = second is not None and second.answer.confidence > instance.answer.confidence
         return second if better else instance
 
-    def finish(self, answer: Alignment, entry: Entry, points: np.ndarray, tolerance: float):
-        """``answer``'s pose refined by ICP on (a sample of) the points it claims, told where
-        the camera was, and its canonical pose among those its symmetry makes equivalent; its
-        alignment error measured on them."""
-        sample = points[subsample(points, FINISH_POINTS, self.query.rng)]
+    def finish(
+        self,
+        answer: Alignment,
+        entry: Entry,
+        points: np.ndarray,
+        tolerance: float,
+        rng: np.random.Generator | None = None,
+    ):
+        """``answer``'s pose refined by ICP on (a sample of) the points it claims (drawn by
+        ``rng``, else the search's generator), told where the camera was, and its canonical
+        pose among those its symmetry makes equivalent; its alignment error measured on them."""
+        sample = points[subsample(points, FINISH_POINTS, rng or self.query.rng)]
         start = Start.at_tolerance(
             entry.surface,
             answer.rotation,

@@ -171,6 +171,10 @@ MAX_JOINS = 6  # ... and only so many times a frame
 TEMPLATE_FIT = 0.8  # a region whose best part explains less of it may hold several ...
 WIDER = 1.25  # ... as may one wider than this many times that part's scale
 FINISH_POINTS, FINISH_ITERATIONS = 1024, 20  # an instance's pose finished on its claim
+# a doubted instance at least this confident is turned over (``Scan.turned_over``), each turn
+# refined on this many of its points; a turn kept explains all but this share of what it did
+# (docs/decisions.md#turned-over)
+TURNED_FLOOR, TURNED_POINTS, TURNED_EXPLAINED = 0.2, 256, 0.01
 TEMPLATE_POOL = 8  # more parts than this plausible: no views are placed
 
 # --- Symmetry: finding a part's turns (docs/decisions.md#symmetry) ---------------------------

@@ -671,6 +671,36 @@ def test_a_pose_the_chain_found_alike_the_camera_sees_through_less_is_posed_agai
     assert instance.evidence["through"] < through / 2
 
 
+def test_a_part_posed_a_quarter_turn_off_about_its_length_is_turned_over(engine):
+    # a bar nearly square across with a low block on one end, answered turned a quarter about
+    # its length (the block out to one side, where the camera sees the table) with no near turn
+    # and no other pose of the chain's to turn to: the frame doubts it, and the claim turns it
+    # over to the true pose, a match
+    bar = trimesh.creation.box((0.08, 0.03, 0.028))
+    block = trimesh.creation.box((0.02, 0.03, 0.01))
+    block.apply_translation((0.03, 0.0, 0.019))
+    entry, scan, region, sigma, answer, (rotation, _) = bar_answered(
+        engine, trimesh.util.concatenate([bar, block])
+    )
+    assert not len(entry.symmetry.near)
+    assert answer.label == "bar" and angle_deg(answer.rotation, rotation) < 5
+    rest = scan.frame
+
+    quarter = Rotation.from_euler("x", 90, degrees=True).as_matrix()[None]
+    (turned,), (moved,) = turned_about(
+        answer.rotation, answer.translation, quarter, entry.frame.centroid
+    )
+    wrong = replace(answer, rotation=turned, translation=moved, closest=None, alternatives=[])
+    tolerance = CLAIM_TOLERANCE * scan.part_tolerance(entry, sigma)
+    _, (through,) = seen_through(
+        entry, turned[None], moved[None], rest.viewpoint, scan.camera, tolerance
+    )
+    assert through > 2 * THROUGH_DOUBT
+    instance = scan.claim(region, wrong, sigma, again=False)
+    assert instance is not None and angle_deg(instance.answer.rotation, rotation) < 5
+    assert instance.answer.verdict == "match" and instance.evidence["through"] < through / 2
+
+
 def look_alikes_shot(engine: Engine, shown: str):
     """A bar with a step on one end ("stepped") and the bar alone ("bar"), registered as
     look-alikes (as a registration check that could not tell them apart stores them), and
