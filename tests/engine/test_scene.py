@@ -640,30 +640,45 @@ def test_a_near_turn_the_camera_sees_through_is_posed_again(engine):
     assert instance.evidence["through"] < through[worst] / 2
 
 
+def bar_with_block(bar: tuple, block: tuple) -> trimesh.Trimesh:
+    """A box ``bar`` with a box ``block`` on its top at one end: no near turn."""
+    knob = trimesh.creation.box(block)
+    knob.apply_translation((bar[0] / 2 - block[0] / 2, 0.0, bar[2] / 2 + block[2] / 2))
+    return trimesh.util.concatenate([trimesh.creation.box(bar), knob])
+
+
+def turned_answer(scan, entry, sigma, answer, turn: np.ndarray, centre: np.ndarray, closest=None):
+    """``answer`` turned by ``turn`` about ``centre`` (model frame), ``closest`` the other pose
+    the chain found fitting alike and no alternatives; and the share of it the camera sees
+    through, at the tolerance of a claim's evidence."""
+    (rotation,), (translation,) = turned_about(
+        answer.rotation, answer.translation, turn[None], centre
+    )
+    wrong = replace(
+        answer, rotation=rotation, translation=translation, closest=closest, alternatives=[]
+    )
+    tolerance = CLAIM_TOLERANCE * scan.part_tolerance(entry, sigma)
+    _, (through,) = seen_through(
+        entry, rotation[None], translation[None], scan.frame.viewpoint, scan.camera, tolerance
+    )
+    return wrong, through
+
+
 def test_a_pose_the_chain_found_alike_the_camera_sees_through_less_is_posed_again(engine):
     # a bar with a block on one end has no near turn; the chain's answer for it, turned end
     # for end (the block where the camera sees the table), with the true pose as the other
     # pose the chain found fitting alike (``closest``): the frame doubts the answer, and the
     # claim poses it again at that other pose
-    bar = trimesh.creation.box((0.08, 0.03, 0.02))
-    block = trimesh.creation.box((0.02, 0.03, 0.02))
-    block.apply_translation((0.03, 0.0, 0.02))
     entry, scan, region, sigma, answer, (rotation, _) = bar_answered(
-        engine, trimesh.util.concatenate([bar, block])
+        engine, bar_with_block((0.08, 0.03, 0.02), (0.02, 0.03, 0.02))
     )
     assert not len(entry.symmetry.near)
     assert answer.label == "bar" and angle_deg(answer.rotation, rotation) < 5
-    rest = scan.frame
 
-    end_for_end = Rotation.from_euler("z", 180, degrees=True).as_matrix()[None]
-    (turned,), (moved,) = turned_about(
-        answer.rotation, answer.translation, end_for_end, entry.symmetry.centroid
-    )
+    end_for_end = Rotation.from_euler("z", 180, degrees=True).as_matrix()
     alike = AlternativePose(answer.rotation, answer.translation, 0.5)
-    wrong = replace(answer, rotation=turned, translation=moved, closest=alike, alternatives=[])
-    tolerance = CLAIM_TOLERANCE * scan.part_tolerance(entry, sigma)
-    _, (through,) = seen_through(
-        entry, turned[None], moved[None], rest.viewpoint, scan.camera, tolerance
+    wrong, through = turned_answer(
+        scan, entry, sigma, answer, end_for_end, entry.symmetry.centroid, alike
     )
     assert through > 2 * THROUGH_DOUBT
     instance = scan.claim(region, wrong, sigma, again=False)
@@ -676,25 +691,14 @@ def test_a_part_posed_a_quarter_turn_off_about_its_length_is_turned_over(engine)
     # its length (the block out to one side, where the camera sees the table) with no near turn
     # and no other pose of the chain's to turn to: the frame doubts it, and the claim turns it
     # over to the true pose, a match
-    bar = trimesh.creation.box((0.08, 0.03, 0.028))
-    block = trimesh.creation.box((0.02, 0.03, 0.01))
-    block.apply_translation((0.03, 0.0, 0.019))
     entry, scan, region, sigma, answer, (rotation, _) = bar_answered(
-        engine, trimesh.util.concatenate([bar, block])
+        engine, bar_with_block((0.08, 0.03, 0.028), (0.02, 0.03, 0.01))
     )
     assert not len(entry.symmetry.near)
     assert answer.label == "bar" and angle_deg(answer.rotation, rotation) < 5
-    rest = scan.frame
 
-    quarter = Rotation.from_euler("x", 90, degrees=True).as_matrix()[None]
-    (turned,), (moved,) = turned_about(
-        answer.rotation, answer.translation, quarter, entry.frame.centroid
-    )
-    wrong = replace(answer, rotation=turned, translation=moved, closest=None, alternatives=[])
-    tolerance = CLAIM_TOLERANCE * scan.part_tolerance(entry, sigma)
-    _, (through,) = seen_through(
-        entry, turned[None], moved[None], rest.viewpoint, scan.camera, tolerance
-    )
+    quarter = Rotation.from_euler("x", 90, degrees=True).as_matrix()
+    wrong, through = turned_answer(scan, entry, sigma, answer, quarter, entry.frame.centroid)
     assert through > 2 * THROUGH_DOUBT
     instance = scan.claim(region, wrong, sigma, again=False)
     assert instance is not None and angle_deg(instance.answer.rotation, rotation) < 5
