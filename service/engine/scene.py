@@ -603,10 +603,16 @@ class Scan:
         }
 
     @staticmethod
-    def another_sample(points: np.ndarray) -> np.ndarray:
-        """``SEGMENT_POINTS`` of ``points`` drawn apart from the search's own draws (which
-        stay as they were), the same for the same points."""
-        return points[subsample(points, SEGMENT_POINTS, np.random.default_rng(len(points)))]
+    def another_sample(points: np.ndarray, count: int = SEGMENT_POINTS) -> np.ndarray:
+        """``count`` of ``points`` drawn apart from the search's own draws (which stay as they
+        were), the same for the same points."""
+        return points[subsample(points, count, Scan.apart(points))]
+
+    @staticmethod
+    def apart(points: np.ndarray) -> np.random.Generator:
+        """A generator for draws from ``points`` apart from the search's own, the same for the
+        same points (``another_sample``, ``turned_over``)."""
+        return np.random.default_rng(len(points))
 
     def ask(self, points: np.ndarray, sigma: float = 0.0) -> Alignment:
         """The chain's answer for ``points``, nothing set aside: asked ahead, or here."""
@@ -750,9 +756,9 @@ class Scan:
         refined on the claim's points: where the camera sees through the best of them under
         ``TURNED_THROUGH`` as much, and it is a match explaining as much of the region (to
         within ``TURNED_EXPLAINED``), that instance. Not tried where the frame gives the
-        instance little chance (``TURNED_FLOOR``: mostly another part's points). A
-        part whose ends look alike (a robot's link) is often posed a quarter turn off about its
-        length, and no near turn names that (docs/decisions.md#turned-over)."""
+        instance little chance (``TURNED_FLOOR``: mostly another part's points). A part whose
+        ends look alike (a robot's link) is often posed a quarter turn off about its length,
+        and no near turn names that (docs/decisions.md#turned-over)."""
         entry, answer = instance.entry, instance.answer
         if answer.confidence < TURNED_FLOOR:
             return instance
@@ -762,8 +768,7 @@ class Scan:
         )
         # drawn apart from the search's own draws, which stay as they were: a turn not kept
         # changes nothing after it
-        points = claim.points
-        sample = points[subsample(points, TURNED_POINTS, np.random.default_rng(len(points)))]
+        sample = self.another_sample(claim.points, TURNED_POINTS)
         tolerance = claim.tolerance / CLAIM_TOLERANCE
         starts = [
             Start.at_tolerance(
@@ -778,7 +783,7 @@ class Scan:
         if best is None:
             return instance
         again = replace(chain, rotation=rotations[best], translation=translations[best])
-        other = self.posed(again, entry, claim, np.random.default_rng(len(points)))
+        other = self.posed(again, entry, claim, self.apart(claim.points))
         if other is None or other.answer.verdict != "match":
             return instance
         # a pose the camera sees through less may lie behind what it sees: it explains less
@@ -836,9 +841,9 @@ class Scan:
         for other in posed:
             if other is best:
                 continue
-            apart = best.evidence["explained"] - other.evidence["explained"]
-            seen_through = best.evidence["through"] - other.evidence["through"]
-            if apart < ALIKE_EXPLAINED or seen_through > ALIKE_THROUGH:
+            more = best.evidence["explained"] - other.evidence["explained"]
+            through = best.evidence["through"] - other.evidence["through"]
+            if more < ALIKE_EXPLAINED or through > ALIKE_THROUGH:
                 return instance
         return best
 
