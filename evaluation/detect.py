@@ -67,7 +67,7 @@ FULL_FRAMES = FramePlan(
     bin_unseen=8,
     bin_seen=6,
     # 100 frames with no registered part: the target (no match in 99 % of them) needs that
-    # many to be told from 95 % (docs/decisions.md#part-free-frames-a-hundred)
+    # many to be told from 95 % (docs/decisions.md#a-hundred-part-free-frames)
     empty=40,
     foreign=60,
     hd_unseen=4,

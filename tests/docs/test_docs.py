@@ -1,6 +1,7 @@
 """The documentation's promises, read from the files: the README stays short and keeps the test
 command where ``.ci/run`` reads it; every relative link of the README, ``docs/`` and
-``examples/`` names a file that exists, and a heading that exists where it names one; the
+``examples/`` names a file that exists, and a heading that exists where it names one, and so
+does every link to a heading of ``docs/`` in a comment or docstring of the code; the
 repository's copies of the binding contract and protocol (``docs/api.md``,
 ``docs/evaluation-protocol.md``) hold the same bytes as ``shared/`` where that folder sits
 beside the repository."""
@@ -59,6 +60,24 @@ def test_every_relative_link_resolves(page):
             broken.append(link)
         elif anchor and path.suffix == ".md" and anchor not in anchors(path):
             broken.append(link)
+    assert not broken, broken
+
+
+CODE = ("service", "evaluation", "training", "benchmarks", "scripts", "tests")
+CODE_LINK = re.compile(r"docs/([\w./-]+\.md)#([\w-]+)")
+
+
+def test_every_heading_the_code_links_to_exists():
+    """A comment says why in a line and links to docs/decisions.md for the rest: the link must
+    land on its section, whose heading may since have been renamed."""
+    broken = []
+    for folder in CODE:
+        for source in sorted((REPO / folder).rglob("*.py")):
+            for number, line in enumerate(source.read_text().splitlines(), 1):
+                for page, anchor in CODE_LINK.findall(line):
+                    path = REPO / "docs" / page
+                    if not path.exists() or anchor not in anchors(path):
+                        broken.append(f"{source.relative_to(REPO)}:{number}: {page}#{anchor}")
     assert not broken, broken
 
 
