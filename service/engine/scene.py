@@ -770,15 +770,7 @@ class Scan:
         # changes nothing after it
         sample = self.another_sample(claim.points, TURNED_POINTS)
         tolerance = claim.tolerance / CLAIM_TOLERANCE
-        starts = [
-            Start.at_tolerance(
-                entry.surface, r, t, tolerance, FINISH_ITERATIONS, self.frame.viewpoint
-            )
-            for r, t in zip(rotations, translations, strict=True)
-        ]
-        refined = icp_many(sample, starts)
-        rotations = np.stack([r for r, _, _ in refined])
-        translations = np.stack([t for _, t, _ in refined])
+        rotations, translations = self.refined(entry, sample, rotations, translations, tolerance)
         best = self.least_seen_through(instance, rotations, translations, claim)
         if best is None:
             return instance
@@ -883,19 +875,33 @@ class Scan:
         ``rng``, else the search's generator), told where the camera was, and its canonical
         pose among those its symmetry makes equivalent; its alignment error measured on them."""
         sample = points[subsample(points, FINISH_POINTS, rng or self.query.rng)]
-        start = Start.at_tolerance(
-            entry.surface,
-            answer.rotation,
-            answer.translation,
-            tolerance,
-            FINISH_ITERATIONS,
-            self.frame.viewpoint,
+        (rotation,), (translation,) = self.refined(
+            entry, sample, answer.rotation[None], answer.translation[None], tolerance
         )
-        ((rotation, translation, _),) = icp_many(sample, [start])
         answer.rotation, answer.translation = entry.symmetry.canonical(rotation, translation)
         error = alignment_error(sample, entry.point_tree, answer.rotation, answer.translation)
         answer.alignment_error = error
         answer.alignment_error_normalized = error / entry.reference.scale
+
+    def refined(
+        self,
+        entry: Entry,
+        sample: np.ndarray,
+        rotations: np.ndarray,
+        translations: np.ndarray,
+        tolerance: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The poses (K, 3, 3), (K, 3) refined together by ICP on ``sample``
+        (``FINISH_ITERATIONS``), told where the camera was."""
+        starts = [
+            Start.at_tolerance(
+                entry.surface, rotation, translation, tolerance, FINISH_ITERATIONS,
+                self.frame.viewpoint,
+            )
+            for rotation, translation in zip(rotations, translations, strict=True)
+        ]  # fmt: skip
+        refined = icp_many(sample, starts)
+        return np.stack([r for r, _, _ in refined]), np.stack([t for _, t, _ in refined])
 
     def judge(self, instance: Instance) -> None:
         """The instance's confidence from the scene calibration, where one is fitted, its

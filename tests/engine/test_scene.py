@@ -647,21 +647,29 @@ def bar_with_block(bar: tuple, block: tuple) -> trimesh.Trimesh:
     return trimesh.util.concatenate([trimesh.creation.box(bar), knob])
 
 
-def turned_answer(scan, entry, sigma, answer, turn: np.ndarray, centre: np.ndarray, closest=None):
-    """``answer`` turned by ``turn`` about ``centre`` (model frame), ``closest`` the other pose
-    the chain found fitting alike and no alternatives; and the share of it the camera sees
-    through, at the tolerance of a claim's evidence."""
-    (rotation,), (translation,) = turned_about(
-        answer.rotation, answer.translation, turn[None], centre
+def turned_claim(engine, bar: tuple, block: tuple, turn: np.ndarray, about, alike=False):
+    """A bar with a block on one end (no near turn) answered by the chain, that answer turned
+    by ``turn`` about ``about(entry)`` (model frame), with no alternatives and (``alike``) the
+    chain's own answer as the other pose it found fitting alike (``closest``), and claimed.
+    The instance, the share of the turned answer the camera sees through (at the tolerance of a
+    claim's evidence), and the true rotation."""
+    entry, scan, region, sigma, answer, (rotation, _) = bar_answered(
+        engine, bar_with_block(bar, block)
     )
-    wrong = replace(
-        answer, rotation=rotation, translation=translation, closest=closest, alternatives=[]
+    assert not len(entry.symmetry.near)
+    assert answer.label == "bar" and angle_deg(answer.rotation, rotation) < 5
+
+    closest = AlternativePose(answer.rotation, answer.translation, 0.5) if alike else None
+    (turned,), (moved,) = turned_about(
+        answer.rotation, answer.translation, turn[None], about(entry)
     )
+    wrong = replace(answer, rotation=turned, translation=moved, closest=closest, alternatives=[])
     tolerance = CLAIM_TOLERANCE * scan.part_tolerance(entry, sigma)
     _, (through,) = seen_through(
-        entry, rotation[None], translation[None], scan.frame.viewpoint, scan.camera, tolerance
+        entry, turned[None], moved[None], scan.frame.viewpoint, scan.camera, tolerance
     )
-    return wrong, through
+    assert through > 2 * THROUGH_DOUBT
+    return scan.claim(region, wrong, sigma, again=False), through, rotation
 
 
 def test_a_pose_the_chain_found_alike_the_camera_sees_through_less_is_posed_again(engine):
@@ -669,19 +677,11 @@ def test_a_pose_the_chain_found_alike_the_camera_sees_through_less_is_posed_agai
     # for end (the block where the camera sees the table), with the true pose as the other
     # pose the chain found fitting alike (``closest``): the frame doubts the answer, and the
     # claim poses it again at that other pose
-    entry, scan, region, sigma, answer, (rotation, _) = bar_answered(
-        engine, bar_with_block((0.08, 0.03, 0.02), (0.02, 0.03, 0.02))
-    )
-    assert not len(entry.symmetry.near)
-    assert answer.label == "bar" and angle_deg(answer.rotation, rotation) < 5
-
     end_for_end = Rotation.from_euler("z", 180, degrees=True).as_matrix()
-    alike = AlternativePose(answer.rotation, answer.translation, 0.5)
-    wrong, through = turned_answer(
-        scan, entry, sigma, answer, end_for_end, entry.symmetry.centroid, alike
-    )
-    assert through > 2 * THROUGH_DOUBT
-    instance = scan.claim(region, wrong, sigma, again=False)
+    instance, through, rotation = turned_claim(
+        engine, (0.08, 0.03, 0.02), (0.02, 0.03, 0.02), end_for_end,
+        lambda entry: entry.symmetry.centroid, alike=True,
+    )  # fmt: skip
     assert instance is not None and angle_deg(instance.answer.rotation, rotation) < 5
     assert instance.evidence["through"] < through / 2
 
@@ -691,16 +691,10 @@ def test_a_part_posed_a_quarter_turn_off_about_its_length_is_turned_over(engine)
     # its length (the block out to one side, where the camera sees the table) with no near turn
     # and no other pose of the chain's to turn to: the frame doubts it, and the claim turns it
     # over to the true pose, a match
-    entry, scan, region, sigma, answer, (rotation, _) = bar_answered(
-        engine, bar_with_block((0.08, 0.03, 0.028), (0.02, 0.03, 0.01))
-    )
-    assert not len(entry.symmetry.near)
-    assert answer.label == "bar" and angle_deg(answer.rotation, rotation) < 5
-
     quarter = Rotation.from_euler("x", 90, degrees=True).as_matrix()
-    wrong, through = turned_answer(scan, entry, sigma, answer, quarter, entry.frame.centroid)
-    assert through > 2 * THROUGH_DOUBT
-    instance = scan.claim(region, wrong, sigma, again=False)
+    instance, through, rotation = turned_claim(
+        engine, (0.08, 0.03, 0.028), (0.02, 0.03, 0.01), quarter, lambda entry: entry.frame.centroid
+    )
     assert instance is not None and angle_deg(instance.answer.rotation, rotation) < 5
     assert instance.answer.verdict == "match" and instance.evidence["through"] < through / 2
 
