@@ -106,7 +106,8 @@ def fit_calibration(rows: list[dict], features: tuple[str, ...] = FEATURES) -> C
     # more fit, coverage or margin never lowers the confidence; a closer other pose never
     # raises it: the signs are constrained, so the answer's meaning cannot invert
     signs = {"fit": 1, "coverage": 1, "margin": 1, "alike": -1, "misfit": -1, "missed": -1,
-             "chain": 1, "seen": 1, "through": -1, "explained": 1, "unexplained": -1}  # fmt: skip
+             "chain": 1, "seen": 1, "through": -1, "explained": 1, "unexplained": -1,
+             "around": -1}  # fmt: skip
     bounds = [
         (0, None) if signs.get(n) == 1 else (None, 0) if signs.get(n) == -1 else (None, None)
         for n in features

@@ -38,7 +38,13 @@ from evaluation import frames as whole
 from evaluation.calibrate import PRECISION, fit_calibration, judge
 from evaluation.metrics import add_s, diameter
 from service.api.clouds import organized
-from service.engine.confidence import ELIGIBLE_FEATURES, SCENE_FEATURES, Calibration, meets
+from service.engine.confidence import (
+    ELIGIBLE_FEATURES,
+    SCENE_FEATURES,
+    SETTLED_FEATURES,
+    Calibration,
+    meets,
+)
 from service.engine.engine import Engine
 from service.engine.frame import Frame
 from service.engine.mapping import Mapper
@@ -122,20 +128,37 @@ def collect(
     return rows
 
 
-def fit_scene(rows: list[dict]) -> Calibration:
+def fit_scene(rows: list[dict], more: tuple[str, ...] = ()) -> Calibration:
     """The detection's calibration: a logistic regression on every instance, and one on those
-    that may be a match alone, which judges them. Most instances are plainly wrong (the
-    chain refuses them, or they explain a few points): fitted on them all, the weights are set
-    where nothing is decided, and the threshold by the few wrong ones that look right
-    (docs/decisions.md#detect)."""
-    calibration = fit_calibration(rows, SCENE_FEATURES)
+    that may be a match alone, which judges them; each on ``more`` features as well. Most
+    instances are plainly wrong (the chain refuses them, or they explain a few points):
+    fitted on them all, the weights are set where nothing is decided, and the threshold by the
+    few wrong ones that look right (docs/decisions.md#detect)."""
+    calibration = fit_calibration(rows, SCENE_FEATURES + more)
     floors = match_floors()
     mine = [row for row in rows if meets(row, floors)]
     right = sum(row["right"] for row in mine)
     if min(right, len(mine) - right) < ELIGIBLE_EACH:  # too few to fit apart
         return calibration
-    eligible = fit_calibration(mine, ELIGIBLE_FEATURES)
+    eligible = fit_calibration(mine, ELIGIBLE_FEATURES + more)
     return replace(calibration, eligible=eligible, eligible_at=floors)
+
+
+def fitted(rows: list[dict], check: list[dict], more: tuple[str, ...] = ()) -> Calibration:
+    """``fit_scene`` on ``rows``, its threshold by ``acceptance`` on ``rows`` and ``check``
+    together, and how it does on each (``about``): on 200 frames one or two wrong instances
+    set the threshold (docs/decisions.md#what-is-left-around)."""
+    calibration = fit_scene(rows, more)
+    accept = acceptance(calibration, rows + check)
+    about = {
+        "fit": judge(calibration, rows, accept),
+        "check": judge(calibration, check, accept),
+        "served": {
+            "fit": served_figures(calibration, rows, accept),
+            "check": served_figures(calibration, check, accept),
+        },
+    }
+    return replace(calibration, accept=accept, about=about)
 
 
 def served(calibration: Calibration, rows: list[dict], threshold: float) -> np.ndarray:
@@ -206,8 +229,9 @@ def main(argv: list[str] | None = None) -> dict:
     check_rows = collect(
         engine, counts, args.seed + 1, unseen, foreign, truth_points, "check frames", args.told
     )
-    calibration = fit_scene(fit_rows)
-    accept = acceptance(calibration, fit_rows)
+    calibration = fitted(fit_rows, check_rows)
+    # judged again once the frame is searched: told frames are not (docs/decisions.md#detect)
+    settled = None if args.told else fitted(fit_rows, check_rows, SETTLED_FEATURES)
     about = {
         "fitted": datetime.now(UTC).isoformat(timespec="seconds"),
         "command": "python -m evaluation.calibrate_detect"
@@ -215,25 +239,20 @@ def main(argv: list[str] | None = None) -> dict:
         + (" --told" if args.told else ""),
         "model_sha256": engine.mapper.model_hash,
         "fit_frames": {k: v for k, v in counts.items()},
-        "fit": judge(calibration, fit_rows, accept),
-        "check": judge(calibration, check_rows, accept),
-        "accept": accept,
+        **calibration.about,
+        "accept": calibration.accept,
         "eligible": {
             "at": calibration.eligible_at,
             "fit_instances": sum(calibration.is_eligible(row) for row in fit_rows),
         }
         if calibration.eligible is not None
         else None,
-        "accept_rule": "the lowest threshold of 99.5 % precision on the fitted frames of the "
-        f"instances the service accepts, at least {ACCEPT_FLOOR}: a match also needs "
-        f"{MATCH_POINTS} points and the chain's own confidence at least {CHAIN_AGREES}",
-        "served": {
-            "fit": served_figures(calibration, fit_rows, accept),
-            "check": served_figures(calibration, check_rows, accept),
-        },
+        "accept_rule": "the lowest threshold of 99.5 % precision on the fit and check frames "
+        f"together of the instances the service accepts, at least {ACCEPT_FLOOR}: a match also "
+        f"needs {MATCH_POINTS} points and the chain's own confidence at least {CHAIN_AGREES}",
         "seconds": round(time.perf_counter() - began, 1),
     }
-    calibration = replace(calibration, about=about, accept=accept)
+    calibration = replace(calibration, about=about, settled=settled)
     if args.rows:
         args.rows.write_text(json.dumps({"fit": fit_rows, "check": check_rows}, default=float))
     if args.told:  # beside the calibration of frames told nothing, which stays as it is
@@ -243,9 +262,11 @@ def main(argv: list[str] | None = None) -> dict:
         if told is not None and told.about.get("model_sha256") == engine.mapper.model_hash:
             calibration = replace(calibration, told=told)
     calibration.save(args.out)
-    for part in ("fit", "check"):
-        print(part, about[part])
-        print(f"{part}, as served:", about["served"][part])
+    for fit in (calibration, settled):
+        for part in ("fit", "check") if fit is not None else ():
+            name = "settled " if fit is settled else ""
+            print(f"{name}{part} at {fit.accept}:", fit.about[part])
+            print(f"{name}{part}, as served:", fit.about["served"][part])
     print(f"detection calibration written to {args.out} in {about['seconds']:.0f} s")
     return about
 

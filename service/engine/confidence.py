@@ -28,7 +28,9 @@ why. A detection's calibration (``SCENE_FEATURES``) may carry a second one, ``to
 frames whose requests named the parts they hold (``candidates``); and each may carry one for the
 instances that may be a match at all (``eligible``, where every measure of ``eligible_at`` is at
 least its value), fitted on those alone: most instances are plainly wrong, and a fit on them all
-sets its weights where nothing is decided (docs/decisions.md#detect).
+sets its weights where nothing is decided (docs/decisions.md#detect). One told nothing may carry
+a third, ``settled``, that judges each instance again once the frame's search is done, on what
+no instance explains around it as well (``SETTLED_FEATURES``).
 """
 
 from __future__ import annotations
@@ -49,6 +51,9 @@ SCENE_FEATURES = ("chain", "fit", "coverage", "margin", "seen", "through", "expl
 ELIGIBLE_FEATURES = (
     "chain", "fit", "coverage", "margin", "seen", "through", "unexplained", "points"
 )  # fmt: skip
+# ... and once the frame is settled (``Calibration.settled``): what no instance explains around
+# it (docs/decisions.md#what-is-left-around)
+SETTLED_FEATURES = ("around",)
 
 
 @dataclass(frozen=True)
@@ -67,6 +72,9 @@ class Calibration:
     # ``eligible_at``'s values (the chain's own word and the points a match needs)
     eligible: Calibration | None = None
     eligible_at: dict[str, float] = field(default_factory=dict)
+    # a detection's once every instance of the frame is found: the same fit, with
+    # ``SETTLED_FEATURES`` added (docs/decisions.md#what-is-left-around)
+    settled: Calibration | None = None
 
     @classmethod
     def load(cls, path: Path) -> Calibration:
@@ -74,10 +82,11 @@ class Calibration:
 
     @classmethod
     def of(cls, document: dict, source: str = "the calibration") -> Calibration:
-        unknown = set(document["features"]) - {*FEATURES, *SCENE_FEATURES, *ELIGIBLE_FEATURES}
+        known = {*FEATURES, *SCENE_FEATURES, *ELIGIBLE_FEATURES, *SETTLED_FEATURES}
+        unknown = set(document["features"]) - known
         if unknown:
             raise ValueError(f"{source}: features this engine does not measure: {sorted(unknown)}")
-        told, eligible = document.get("told"), document.get("eligible")
+        told, eligible, settled = (document.get(k) for k in ("told", "eligible", "settled"))
         return cls(
             tuple(document["features"]),
             np.asarray(document["weights"], dtype=np.float64),
@@ -89,6 +98,7 @@ class Calibration:
             None if told is None else cls.of(told, f"{source} (told)"),
             None if eligible is None else cls.of(eligible, f"{source} (eligible)"),
             {k: float(v) for k, v in document.get("eligible_at", {}).items()},
+            None if settled is None else cls.of(settled, f"{source} (settled)"),
         )
 
     def document(self) -> dict:
@@ -106,6 +116,8 @@ class Calibration:
         if self.eligible is not None:
             document["eligible"] = self.eligible.document()
             document["eligible_at"] = self.eligible_at
+        if self.settled is not None:
+            document["settled"] = self.settled.document()
         return document
 
     def save(self, path: Path) -> None:

@@ -875,6 +875,7 @@ class Engine:
             scan.settle()
         clock.lap("instances")
         instances = settle_claims(instances, len(rest), KEEP_SHARE)  # one global check
+        instances = scan.judged_around(instances)  # ... and what it leaves around each
         clock.lap("global check")
         seen = keep if thin is frame else apply_supports(frame, supports, angle)  # full res
         return scan.answer(frame, seen, supports, instances, clock)

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from service.engine.alignment import alignment_error, turned_about
 from service.engine.answer import Alignment, Detection, SceneAnswer
@@ -44,6 +45,9 @@ from service.engine.templates import likeliest, place_views
 from service.engine.tuning import (
     ALIKE_EXPLAINED,
     ALIKE_THROUGH,
+    AROUND_DOUBT,
+    AROUND_SAMPLE,
+    AROUND_SCALES,
     CHAIN_AGREES,
     CLAIM_TOLERANCE,
     DUPLICATE_GAP,
@@ -79,6 +83,8 @@ from service.engine.verification import surface_distance
 
 log = logging.getLogger(__name__)
 
+NOTHING_AROUND = float(np.log10(0.01))  # ``evidence``'s ``around`` where nothing is left around
+
 
 @dataclass
 class Instance:
@@ -89,6 +95,7 @@ class Instance:
     claimed: np.ndarray  # (M,) indices into the searched frame's points
     distance: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))  # (M,)
     evidence: dict[str, float] = field(default_factory=dict)  # ``evidence``
+    told: bool = False  # judged by the calibration of frames told their parts
 
     @property
     def centre(self) -> np.ndarray:
@@ -241,7 +248,28 @@ def evidence(
         "explained": explained,
         "unexplained": float(np.log10(1 - explained + 0.01)),
         "points": float(np.log10(max(claimed, 1))),
+        "around": NOTHING_AROUND,
     }
+
+
+def around(
+    points: np.ndarray, unexplained: np.ndarray, claimed: np.ndarray, reach: float
+) -> tuple[int, float]:
+    """Of the frame's ``points``, those ``unexplained`` (a mask) within ``reach`` of an
+    instance's ``claimed`` ones (of ``AROUND_SAMPLE`` of them, evenly): how many, and log10 of
+    that per claimed point plus 0.01 (``evidence``'s ``around``)."""
+    if not len(claimed):
+        return 0, NOTHING_AROUND
+    count = min(len(claimed), AROUND_SAMPLE)
+    mine = points[claimed[np.linspace(0, len(claimed) - 1, count).astype(int)]]
+    low, high = mine.min(axis=0) - reach, mine.max(axis=0) + reach
+    others = np.flatnonzero(unexplained)
+    boxed = others[np.all((points[others] >= low) & (points[others] <= high), axis=1)]
+    if not len(boxed):
+        return 0, NOTHING_AROUND
+    distance, _ = cKDTree(mine).query(points[boxed], distance_upper_bound=reach)
+    count = int(np.isfinite(distance).sum())
+    return count, float(np.log10(count / len(claimed) + 0.01))
 
 
 def seen_through(
@@ -903,14 +931,47 @@ class Scan:
         refined = icp_many(sample, starts)
         return np.stack([r for r, _, _ in refined]), np.stack([t for _, t, _ in refined])
 
-    def judge(self, instance: Instance) -> None:
-        """The instance's confidence from the scene calibration, where one is fitted, its
-        verdict and reasons; else the chain's own."""
+    def judged_around(self, instances: list[Instance]) -> list[Instance]:
+        """Each instance judged again once the frame is searched, by the calibration's
+        ``settled`` fit: on the frame's points that no listed instance explains within
+        ``AROUND_SCALES`` of its part's scale of its points (``around``) as well. A part
+        fitted on a piece of a larger one that nothing explains has the rest of it around;
+        one lying alone has the support (docs/decisions.md#what-is-left-around). Not those
+        judged as told (no such fit); those then less confident than the floor go."""
+        unexplained = np.ones(len(self.frame), dtype=bool)
+        for instance in instances:  # what the listed instances explain (a calibration's: all)
+            if (instance.answer.confidence or 0.0) >= INSTANCE_FLOOR:
+                unexplained[instance.claimed] = False
+        judged = []
+        for instance in instances:
+            reach = AROUND_SCALES * instance.entry.reference.scale
+            count, share = around(self.frame.points, unexplained, instance.claimed, reach)
+            instance.evidence["around"] = share
+            settled = self.calibration.settled if self.calibration is not None else None
+            if settled is None or instance.told:
+                judged.append(instance)
+                continue
+            self.judge(instance, settled)
+            answer = instance.answer
+            if count >= AROUND_DOUBT * len(instance.claimed) and answer.verdict != "match":
+                answer.reasons.append(
+                    f"{count} of the frame's points that no part explains lie around it "
+                    f"({count / len(instance.claimed):.0%} of those it explains): it may be a "
+                    "piece of a part not registered or not found"
+                )
+            if (instance.answer.confidence or 0.0) >= self.floor:
+                judged.append(instance)
+        return judged
+
+    def judge(self, instance: Instance, calibration: Calibration | None = None) -> None:
+        """The instance's confidence from the scene calibration (or ``calibration``), where
+        one is fitted, its verdict and reasons; else the chain's own."""
         answer, said = instance.answer, instance.evidence
         if self.calibration is None:
             return
-        calibration = self.calibration
-        if calibration.told is not None and self.told:
+        instance.told = calibration is None and self.told and self.calibration.told is not None
+        calibration = calibration or self.calibration
+        if instance.told:
             calibration = calibration.told
         answer.confidence = calibration.confidence(said)
         threshold = next(t for t in (self.min_confidence, calibration.accept) if t is not None)

@@ -20,7 +20,14 @@ from service.engine.engine import Engine
 from service.engine.mapping import Mapper
 from service.engine.projection import DepthImage
 from service.engine.sampling import sample_surface_faces
-from service.engine.scene import Instance, evidence, seen_through, settle_claims
+from service.engine.scene import (
+    NOTHING_AROUND,
+    Instance,
+    around,
+    evidence,
+    seen_through,
+    settle_claims,
+)
 from service.engine.segments import segments
 from service.engine.supports import set_aside_supports
 from service.engine.tuning import (
@@ -102,11 +109,56 @@ def test_one_part_found_twice_at_one_pose_is_one_instance(engine, one_box):
     assert kept == [a]
 
 
+def test_what_is_around_an_instance_is_what_no_instance_explains_within_reach():
+    # a claimed square metre; beside it, points 5 and 15 cm beyond its edge, one 10 cm over
+    # it, one 30 cm beyond, and one 10 cm beyond the other edge that another instance explains
+    square = np.stack(np.meshgrid(np.linspace(0, 1, 11), np.linspace(0, 1, 11)), -1)
+    claimed = np.c_[square.reshape(-1, 2), np.zeros(121)]
+    beside = [[1.05, 0.5, 0], [1.15, 0.5, 0], [0.5, 0.5, 0.1], [1.3, 0.5, 0], [-0.1, 0.5, 0]]
+    points = np.vstack([claimed, np.array(beside, dtype=float)])
+    unexplained = np.ones(len(points), dtype=bool)
+    unexplained[:121] = unexplained[-1] = False
+    count, share = around(points, unexplained, np.arange(121), reach=0.2)
+    assert count == 3
+    assert share == pytest.approx(np.log10(3 / 121 + 0.01))
+    assert around(points, unexplained, np.arange(121), reach=0.04) == (0, NOTHING_AROUND)
+
+
+def test_what_no_part_explains_around_an_instance_lowers_its_confidence(engine):
+    # a cube alone on the table has nothing around it (the table is set aside); 8 mm from a
+    # box nobody registered, the box's points lie around it, as the rest of a larger part
+    # lies around a registered one fitted on a piece of it, and the frame's settled judgement
+    # is less sure of it; refused (a threshold of 1), it says so
+    calibration = Calibration.load(SETTINGS.detect_confidence_path)
+    settled = calibration.settled
+    assert settled is not None
+    calibrated = Engine(engine.mapper, SETTINGS.engine, engine.calibration, calibration)
+    cube, box = trimesh.creation.box((0.03, 0.025, 0.02)), trimesh.creation.box((0.16, 0.12, 0.06))
+    registered(calibrated, {"cube": cube})
+    found = {}
+    for beside in (False, True):
+        placed = [(cube, *resting(cube, spin(20), 0.0, 0.0))]
+        if beside:
+            placed.append((box, *resting(box, spin(0), -0.103, 0.0)))
+        frame = frame_of(shoot(placed, table()))
+        (detection,) = calibrated.detect(frame, min_confidence=1.0).detections
+        assert detection.answer.label == "cube"
+        assert detection.answer.confidence == pytest.approx(settled.confidence(detection.evidence))
+        found[beside] = detection
+    said = {beside: found[beside].evidence for beside in found}
+    assert said[False]["around"] == NOTHING_AROUND
+    assert said[True]["around"] > -1.0  # over a tenth as many points as it claims
+    alone = {**said[True], "around": NOTHING_AROUND}
+    assert settled.confidence(said[True]) < settled.confidence(alone)
+    about = [r for d in found.values() for r in d.answer.reasons if "no part explains" in r]
+    assert len(about) == 1 and about[0] in found[True].answer.reasons
+
+
 def one_fit(**changes) -> Calibration:
     """The shipped detections' calibration with ``changes``, judging every instance alone (its
-    fit on the instances that may be a match set aside)."""
+    fit on the instances that may be a match set aside) and once (its settled fit, too)."""
     shipped = Calibration.load(SETTINGS.detect_confidence_path)
-    return replace(shipped, eligible=None, eligible_at={}, **changes)
+    return replace(shipped, eligible=None, eligible_at={}, settled=None, **changes)
 
 
 def test_a_part_seen_by_too_few_points_is_not_a_match(engine):
@@ -169,7 +221,7 @@ def test_an_instance_that_may_match_is_judged_by_the_calibration_fitted_on_those
     for least in (2.0, 9.0):
         path = tmp_path / f"detect_confidence_{least}.json"
         floors = {"chain": 0.0, "points": least}
-        replace(shipped, eligible=doubting, eligible_at=floors).save(path)
+        replace(shipped, eligible=doubting, eligible_at=floors, settled=None).save(path)
         loaded = Calibration.load(path)
         assert loaded.eligible is not None and loaded.eligible_at == floors
         calibrated = Engine(engine.mapper, SETTINGS.engine, engine.calibration, loaded)

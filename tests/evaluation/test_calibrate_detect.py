@@ -3,10 +3,12 @@ service would accept, not on the confidence alone."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from evaluation.calibrate_detect import acceptance, fit_scene, served, served_figures
+from evaluation.calibrate_detect import acceptance, fit_scene, fitted, served, served_figures
 from service.engine.confidence import SCENE_FEATURES as FEATURES
 from service.engine.confidence import Calibration
 
@@ -22,7 +24,7 @@ def row(chain: float, points: int, right: bool, family: str = "scene") -> dict:
     logit = float(np.log(chain / (1 - chain)))
     return {"chain": logit, "fit": 1.0, "coverage": 1.0, "margin": 0.5, "seen": 1.0,
             "through": 0.0, "explained": 1.0, "unexplained": -2.0,
-            "points": float(np.log10(points)),
+            "points": float(np.log10(points)), "around": -2.0,
             "right": right, "family": family}  # fmt: skip
 
 
@@ -68,3 +70,26 @@ def test_the_instances_that_may_match_get_a_fit_of_their_own():
     assert min(map(calibration.confidence, right)) > max(map(calibration.confidence, wrong))
     # too few wrong ones among those that may match: one fit for all
     assert fit_scene(refused + right + wrong[:5]).eligible is None
+
+
+def test_the_settled_fit_weighs_what_no_instance_explains_around_one():
+    # right and wrong instances the chain is alike sure of; the wrong ones have the rest of a
+    # larger part around them: the fit without it cannot tell them apart, the settled one can
+    rng = np.random.default_rng(1)
+    chains = rng.uniform(0.6, 0.99, 120)
+    right = [{**row(c, 1000, True), "around": a} for c, a in zip(chains[:80],
+             rng.uniform(-2.0, -1.2, 80), strict=True)]  # fmt: skip
+    wrong = [{**row(c, 1000, False), "around": a} for c, a in zip(chains[80:],
+             rng.uniform(-0.8, 0.3, 40), strict=True)]  # fmt: skip
+    rows = right + wrong
+    settled = fitted(rows, rows, ("around",))
+    assert settled.features[-1] == "around" and settled.eligible.features[-1] == "around"
+    assert settled.eligible.weights[-1] < 0
+    assert min(map(settled.confidence, right)) > max(map(settled.confidence, wrong))
+    assert settled.about["fit"]["precision_of_accepted"] == 1.0
+    plain = fitted(rows, rows)
+    assert "around" not in plain.features
+    assert plain.accept > settled.accept or plain.about["fit"]["right_accepted"] < 1.0
+    again = Calibration.of(replace(plain, settled=settled).document())
+    assert again.settled is not None and again.settled.features == settled.features
+    assert again.settled.accept == settled.accept
