@@ -260,8 +260,8 @@ def around(
     that per claimed point plus 0.01 (``evidence``'s ``around``)."""
     if not len(claimed):
         return 0, NOTHING_AROUND
-    count = min(len(claimed), AROUND_SAMPLE)
-    mine = points[claimed[np.linspace(0, len(claimed) - 1, count).astype(int)]]
+    taken = min(len(claimed), AROUND_SAMPLE)
+    mine = points[claimed[np.linspace(0, len(claimed) - 1, taken).astype(int)]]
     low, high = mine.min(axis=0) - reach, mine.max(axis=0) + reach
     others = np.flatnonzero(unexplained)
     boxed = others[np.all((points[others] >= low) & (points[others] <= high), axis=1)]
@@ -942,12 +942,12 @@ class Scan:
         for instance in instances:  # what the listed instances explain (a calibration's: all)
             if (instance.answer.confidence or 0.0) >= INSTANCE_FLOOR:
                 unexplained[instance.claimed] = False
+        settled = self.calibration.settled if self.calibration is not None else None
         judged = []
         for instance in instances:
             reach = AROUND_SCALES * instance.entry.reference.scale
             count, share = around(self.frame.points, unexplained, instance.claimed, reach)
             instance.evidence["around"] = share
-            settled = self.calibration.settled if self.calibration is not None else None
             if settled is None or instance.told:
                 judged.append(instance)
                 continue
@@ -959,7 +959,7 @@ class Scan:
                     f"({count / len(instance.claimed):.0%} of those it explains): it may be a "
                     "piece of a part not registered or not found"
                 )
-            if (instance.answer.confidence or 0.0) >= self.floor:
+            if (answer.confidence or 0.0) >= self.floor:
                 judged.append(instance)
         return judged
 
