@@ -230,7 +230,8 @@ def main(argv: list[str] | None = None) -> dict:
         engine, counts, args.seed + 1, unseen, foreign, truth_points, "check frames", args.told
     )
     calibration = fitted(fit_rows, check_rows)
-    # judged again once the frame is searched: told frames are not (docs/decisions.md#detect)
+    # judged again once the frame is searched; told frames are not
+    # (docs/decisions.md#what-is-left-around)
     settled = None if args.told else fitted(fit_rows, check_rows, SETTLED_FEATURES)
     about = {
         "fitted": datetime.now(UTC).isoformat(timespec="seconds"),

@@ -849,10 +849,11 @@ class Engine:
         """Every instance of a registered part in a camera's ``frame``: the supports set
         aside, the rest split into segments, each searched by the chain until nothing more
         fits, and searched again for more of a part found several times; then one global
-        check among the instances. ``floor``: the least confidence of
-        an instance (default ``INSTANCE_FLOOR``; the calibration collects them all with 0);
-        ``deadline`` (``time.monotonic()``): no region is searched after it; ``submit``:
-        ``align`` in another process, answering a future (``Scan.ask_ahead``)."""
+        check among the instances, each judged again on what is left around it. ``floor``:
+        the least confidence of an instance (default ``INSTANCE_FLOOR``; the calibration
+        collects them all with 0); ``deadline`` (``time.monotonic()``): no region is searched
+        after it; ``submit``: ``align`` in another process, answering a future
+        (``Scan.ask_ahead``)."""
         query = self.query(candidates, None, True, None, frame.viewpoint)
         clock = Stopwatch()
         frame = frame if roi is None else frame.cropped(*roi)

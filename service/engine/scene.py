@@ -11,7 +11,8 @@ the best placed view explains. Segments where nothing was found are then tried j
 neighbour (a part cut in two). Where a part was found several times (a bin's), what is left is
 searched again for it alone (``Engine.detect``). Last the global check: each claimed point goes
 to the instance whose surface is nearest it, and an instance left with too little of what it
-claimed is dropped.
+claimed is dropped; then each is judged again on what the frame leaves unexplained around it
+(``Scan.judged_around``).
 
 An instance's confidence is the scene calibration's (``evidence``: the chain's confidence and
 what the frame's depth says of the pose), where one is fitted; else the chain's.
