@@ -253,22 +253,19 @@ def evidence(
     }
 
 
-def around(
-    points: np.ndarray, unexplained: np.ndarray, claimed: np.ndarray, reach: float
-) -> tuple[int, float]:
-    """Of the frame's ``points``, those ``unexplained`` (a mask) within ``reach`` of an
-    instance's ``claimed`` ones (of ``AROUND_SAMPLE`` of them, evenly): how many, and log10 of
-    that per claimed point plus 0.01 (``evidence``'s ``around``)."""
+def around(others: np.ndarray, claimed: np.ndarray, reach: float) -> tuple[int, float]:
+    """Of the frame's points ``others`` (M, 3) no instance explains, those within ``reach`` of
+    an instance's ``claimed`` points (N, 3; of ``AROUND_SAMPLE`` of them, evenly): how many,
+    and log10 of that per claimed point plus 0.01 (``evidence``'s ``around``)."""
     if not len(claimed):
         return 0, NOTHING_AROUND
     taken = min(len(claimed), AROUND_SAMPLE)
-    mine = points[claimed[np.linspace(0, len(claimed) - 1, taken).astype(int)]]
+    mine = claimed[np.linspace(0, len(claimed) - 1, taken).astype(int)]
     low, high = mine.min(axis=0) - reach, mine.max(axis=0) + reach
-    others = np.flatnonzero(unexplained)
-    boxed = others[np.all((points[others] >= low) & (points[others] <= high), axis=1)]
+    boxed = others[np.all((others >= low) & (others <= high), axis=1)]
     if not len(boxed):
         return 0, NOTHING_AROUND
-    distance, _ = cKDTree(mine).query(points[boxed], distance_upper_bound=reach)
+    distance, _ = cKDTree(mine).query(boxed, distance_upper_bound=reach)
     count = int(np.isfinite(distance).sum())
     return count, float(np.log10(count / len(claimed) + 0.01))
 
@@ -943,25 +940,18 @@ class Scan:
         for instance in instances:  # what the listed instances explain (a calibration's: all)
             if (instance.answer.confidence or 0.0) >= INSTANCE_FLOOR:
                 unexplained[instance.claimed] = False
+        others = self.frame.points[unexplained]
         settled = self.calibration.settled if self.calibration is not None else None
         judged = []
         for instance in instances:
             reach = AROUND_SCALES * instance.entry.reference.scale
-            count, share = around(self.frame.points, unexplained, instance.claimed, reach)
+            _, share = around(others, self.frame.points[instance.claimed], reach)
             instance.evidence["around"] = share
-            if settled is None or instance.told:
-                judged.append(instance)
-                continue
-            self.judge(instance, settled)
-            answer = instance.answer
-            if count >= AROUND_DOUBT * len(instance.claimed) and answer.verdict != "match":
-                answer.reasons.append(
-                    f"{count} of the frame's points that no part explains lie around it "
-                    f"({count / len(instance.claimed):.0%} of those it explains): it may be a "
-                    "piece of a part not registered or not found"
-                )
-            if (answer.confidence or 0.0) >= self.floor:
-                judged.append(instance)
+            if settled is not None and not instance.told:
+                self.judge(instance, settled)
+                if (instance.answer.confidence or 0.0) < self.floor:
+                    continue
+            judged.append(instance)
         return judged
 
     def judge(self, instance: Instance, calibration: Calibration | None = None) -> None:
@@ -980,6 +970,7 @@ class Scan:
         if may_match(said, answer.confidence, threshold) and not few:
             answer.verdict, answer.reasons = "match", []
             doubt(answer, share=False)  # the chain's confidence, shared among them, is a feature
+            self.say_around(instance)  # a look-alike doubted
             return
         answer.verdict = "uncertain" if answer.confidence >= 0.2 else "no_match"
         reasons = []
@@ -1011,6 +1002,21 @@ class Scan:
         earlier = [r for r in answer.reasons if "threshold" not in r]  # judged before, too
         answer.reasons = list(dict.fromkeys(reasons + earlier))
         doubt(answer, share=False)
+        self.say_around(instance)
+
+    @staticmethod
+    def say_around(instance: Instance) -> None:
+        """A reason for an instance not a match with ``AROUND_DOUBT`` of its points' count
+        around it, once the frame is searched (``judged_around``)."""
+        answer, said = instance.answer, instance.evidence
+        if answer.verdict == "match" or said["around"] < np.log10(AROUND_DOUBT + 0.01):
+            return
+        share = 10 ** said["around"] - 0.01
+        answer.reasons.append(
+            f"{round(share * len(instance.claimed))} of the frame's points that no part explains "
+            f"lie around it ({share:.0%} of those it explains): it may be a piece of a part not "
+            "registered or not found"
+        )
 
     def answer(
         self,

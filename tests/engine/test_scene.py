@@ -118,10 +118,10 @@ def test_what_is_around_an_instance_is_what_no_instance_explains_within_reach():
     points = np.vstack([claimed, np.array(beside, dtype=float)])
     unexplained = np.ones(len(points), dtype=bool)
     unexplained[:121] = unexplained[-1] = False
-    count, share = around(points, unexplained, np.arange(121), reach=0.2)
+    count, share = around(points[unexplained], claimed, reach=0.2)
     assert count == 3
     assert share == pytest.approx(np.log10(3 / 121 + 0.01))
-    assert around(points, unexplained, np.arange(121), reach=0.04) == (0, NOTHING_AROUND)
+    assert around(points[unexplained], claimed, reach=0.04) == (0, NOTHING_AROUND)
 
 
 def test_what_no_part_explains_around_an_instance_lowers_its_confidence(engine):
