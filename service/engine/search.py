@@ -457,8 +457,8 @@ class Search:
         part (about the part's centre, in the model frame), each refined: a notch or a cross
         hole may be all that tells those poses apart. Of the poses that fit alike, the one
         whose points lie closest to the surface goes first; those as close as it (within
-        ``RESIDUAL_ALIKE``) stay as alternatives. Where a pose turned end for end goes first,
-        its own turns are tried once more (``repeat``)."""
+        ``RESIDUAL_ALIKE``) stay as alternatives. Where a turned pose goes first, its own
+        turns are tried once more (``repeat``)."""
         best = fits[0]
         entry = self.entry(best.row)
         symmetry = entry.symmetry
@@ -491,9 +491,9 @@ class Search:
             if f is not alike[chosen] and r <= RESIDUAL_ALIKE * residuals[chosen]
         ]
         answer = [alike[chosen], *close, *fits[1:]]
-        reversing = symmetry.near_reversing
-        flipped = [t for t, k in zip(turned, order, strict=True) if reversing[k]]
-        if repeat and any(alike[chosen] is t for t in flipped):
+        # the turns were chosen on the pose they turn: from a turned winner, choose them again
+        # (docs/decisions.md#beyond-the-evaluations-draw)
+        if repeat and alike[chosen] is not best:
             return self.resolve_near(answer, repeat=False)
         return answer
 
