@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-from collections import Counter
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 
@@ -51,7 +50,7 @@ from service.engine.principal_axes import flatness, one_line, thinness
 from service.engine.projection import DepthImage
 from service.engine.query import Observed, Query, Ranking, Stopwatch
 from service.engine.reference import Reference
-from service.engine.scene import Scan, settle_claims
+from service.engine.scene import Scan, settle_claims, several
 from service.engine.search import Plan, Search, excellent, sure_first
 from service.engine.segments import segments
 from service.engine.supports import Noise, apply_supports, set_aside_supports
@@ -71,7 +70,6 @@ from service.engine.tuning import (
     PER_PART,
     POOR_FIT,
     RIGHT_EITHER_WAY,
-    SEVERAL,
     THIN_PER_SCALE,
     VIEW_POINTS,
     WHOLE_FINISHED,
@@ -849,7 +847,8 @@ class Engine:
         """Every instance of a registered part in a camera's ``frame``: the supports set
         aside, the rest split into segments, each searched by the chain until nothing more
         fits, and searched again for more of a part found several times; then one global
-        check among the instances, each judged again on what is left around it. ``floor``:
+        check among the instances, each judged again on what is left around it, and a part
+        found several times only then searched again as well. ``floor``:
         the least confidence of an instance (default ``INSTANCE_FLOOR``; the calibration
         collects them all with 0); ``deadline`` (``time.monotonic()``): no region is searched
         after it; ``submit``: ``align`` in another process, answering a future
@@ -875,8 +874,10 @@ class Engine:
         finally:
             scan.settle()
         clock.lap("instances")
+        searched = several(instances)  # the parts looked for again
         instances = settle_claims(instances, len(rest), KEEP_SHARE)  # one global check
         instances = scan.judged_around(instances)  # ... and what it leaves around each
+        instances = self._settled_several(scan, instances, labels, max_instances, searched)
         clock.lap("global check")
         seen = keep if thin is frame else apply_supports(frame, supports, angle)  # full res
         return scan.answer(frame, seen, supports, instances, clock)
@@ -901,23 +902,29 @@ class Engine:
             submit,
         )
 
-    def _found_again(self, scan: Scan, found: list, labels: np.ndarray, most: int) -> list:
-        """More instances of the parts matched ``SEVERAL`` times or more in the frame, looked for
-        where nothing more was found, told only those parts: a frame that holds several of one
-        part (a bin) may hold more of it, touching them, that the search among every part
-        missed (docs/decisions.md#detect). Those found already and doubted are judged again
-        as a frame told those parts would be
+    def _found_again(
+        self,
+        scan: Scan,
+        found: list,
+        labels: np.ndarray,
+        most: int,
+        parts: list[str] | None = None,
+    ) -> list:
+        """More instances of the parts matched ``SEVERAL`` times or more in the frame (or of
+        ``parts``), looked for where nothing more was found, told only those parts: a frame
+        that holds several of one part (a bin) may hold more of it, touching them, that the
+        search among every part missed (docs/decisions.md#detect). Those found already and
+        doubted are judged again as a frame told those parts would be
         (docs/decisions.md#a-part-the-frame-holds-several-of)."""
-        matched = Counter(i.answer.label for i in found if i.answer.verdict == "match")
-        several = sorted(label for label, count in matched.items() if count >= SEVERAL)
-        if not several:
+        parts = several(found) if parts is None else parts
+        if not parts:
             return []
-        told = self.query(several, None, True, None, scan.query.viewpoint)
+        told = self.query(parts, None, True, None, scan.query.viewpoint)
         if len(told.allowed) == len(scan.query.allowed):  # told those alone already
             return []
         again = scan.narrowed(told)  # judged as a frame told its parts
         for instance in found:  # ... the instances of them found already, too
-            if instance.answer.label in several and instance.answer.verdict != "match":
+            if instance.answer.label in parts and instance.answer.verdict != "match":
                 again.judge(instance)
         if len(found) >= most or not scan.in_time():
             return []
@@ -927,6 +934,20 @@ class Engine:
             again.settle()
         scan.complete = again.complete
         return more
+
+    def _settled_several(
+        self, scan: Scan, found: list, labels: np.ndarray, most: int, searched: list[str]
+    ) -> list:
+        """``found`` with the parts matched ``SEVERAL`` times only once judged on what is left
+        around them (not among those ``searched`` again already) looked for again, as
+        ``_found_again`` does, and the instances checked and judged once more
+        (docs/decisions.md#a-part-the-frame-holds-several-of)."""
+        parts = [label for label in several(found) if label not in searched]
+        more = self._found_again(scan, found, labels, most, parts) if parts else []
+        if not more:
+            return found
+        found = settle_claims(found + more, len(scan.frame), KEEP_SHARE)
+        return scan.judged_around(found)
 
     def _frame_scales(self, query: Query, frame: Frame) -> np.ndarray:
         """The scales of the references a part in this frame could be: those no larger than

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import Counter
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
@@ -69,6 +70,7 @@ from service.engine.tuning import (
     PIECE_CELLS,
     SEGMENT_POINTS,
     SEGMENT_RESCUED,
+    SEVERAL,
     TEMPLATE_FIT,
     TEMPLATE_PARTS,
     TEMPLATE_POOL,
@@ -143,6 +145,13 @@ def claimable(
     part's surface at the answer's pose: (indices, distances)."""
     close, distance = near_surface(points, entry, answer.rotation, answer.translation, tolerance)
     return available[close], distance
+
+
+def several(instances: list[Instance]) -> list[str]:
+    """The parts matched ``SEVERAL`` times or more among ``instances``: a frame that holds
+    several of one part (docs/decisions.md#a-part-the-frame-holds-several-of)."""
+    matched = Counter(i.answer.label for i in instances if i.answer.verdict == "match")
+    return sorted(label for label, count in matched.items() if count >= SEVERAL)
 
 
 def settle_claims(instances: list[Instance], count: int, keep_share: float) -> list[Instance]:

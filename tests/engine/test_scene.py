@@ -156,9 +156,10 @@ def test_what_no_part_explains_around_an_instance_lowers_its_confidence(engine):
 
 def one_fit(**changes) -> Calibration:
     """The shipped detections' calibration with ``changes``, judging every instance alone (its
-    fit on the instances that may be a match set aside) and once (its settled fit, too)."""
+    fit on the instances that may be a match set aside) and once (its settled fit, too, unless
+    ``changes`` give one)."""
     shipped = Calibration.load(SETTINGS.detect_confidence_path)
-    return replace(shipped, eligible=None, eligible_at={}, settled=None, **changes)
+    return replace(shipped, **{"eligible": None, "eligible_at": {}, "settled": None, **changes})
 
 
 def test_a_part_seen_by_too_few_points_is_not_a_match(engine):
@@ -598,6 +599,43 @@ def test_a_part_the_frame_holds_several_of_is_judged_as_told(engine):
     for told, verdicts in ((None, ["match", "match", "uncertain"]), (trusting, ["match"] * 3)):
         doubting = one_fit(
             weights=weights, mean=mean, spread=spread, bias=logit(0.45), accept=0.9, told=told
+        )
+        judged = registered(
+            Engine(engine.mapper, SETTINGS.engine, engine.calibration, doubting), meshes
+        )
+        found = judged.detect(frame).detections
+        assert [d.answer.label for d in found] == ["box"] * 3
+        assert sorted(d.answer.verdict for d in found) == sorted(verdicts)
+
+
+def test_a_part_matched_several_times_once_settled_is_looked_for_again(engine):
+    # the three boxes above, a first fit that doubts every instance, and a settled fit (what
+    # is left around) that trusts the two boxes seen by the most points: the frame then holds
+    # several boxes only once the search is done, and the third is judged again as a frame
+    # told the box would be (docs/decisions.md#a-part-the-frame-holds-several-of)
+    meshes = {"box": trimesh.creation.box((0.08, 0.06, 0.04))}
+    meshes["cube"] = trimesh.creation.box((0.03, 0.025, 0.02))
+    box = meshes["box"]
+    placed = [(box, *resting(box, spin(25 + 40 * k), 0.14 * k - 0.14, 0.0)) for k in range(3)]
+    frame = frame_of(shoot(placed, table()))
+    trusting = one_fit(bias=50.0)
+    probe = registered(Engine(engine.mapper, SETTINGS.engine, engine.calibration, trusting), meshes)
+    found = probe.detect(frame).detections
+    assert [d.answer.label for d in found] == ["box"] * 3
+    fewest, next_fewest = sorted(d.evidence["points"] for d in found)[:2]
+    logit = lambda p: np.log(p / (1 - p))  # noqa: E731
+    at = trusting.features.index("points")
+    weights, mean, spread = (
+        np.zeros(len(trusting.features)),
+        trusting.mean.copy(),
+        trusting.spread.copy(),
+    )
+    weights[at], mean[at] = 1.0, fewest
+    spread[at] = (next_fewest - fewest) / (logit(0.95) - logit(0.45))
+    settled = one_fit(weights=weights, mean=mean, spread=spread, bias=logit(0.45), accept=0.9)
+    for told, verdicts in ((None, ["match", "match", "uncertain"]), (trusting, ["match"] * 3)):
+        doubting = one_fit(
+            weights=np.zeros(len(weights)), bias=logit(0.45), accept=0.9, told=told, settled=settled
         )
         judged = registered(
             Engine(engine.mapper, SETTINGS.engine, engine.calibration, doubting), meshes
