@@ -457,8 +457,9 @@ class Search:
         part (about the part's centre, in the model frame), each refined: a notch or a cross
         hole may be all that tells those poses apart. Of the poses that fit alike, the one
         whose points lie closest to the surface goes first; those as close as it (within
-        ``RESIDUAL_ALIKE``) stay as alternatives. Where a turned pose goes first, its own
-        turns are tried once more (``repeat``)."""
+        ``RESIDUAL_ALIKE``) stay as alternatives. Where a pose turned end for end goes first,
+        or any turned pose of a best pose that fit less than excellently, its own turns are
+        tried once more (``repeat``)."""
         best = fits[0]
         entry = self.entry(best.row)
         symmetry = entry.symmetry
@@ -491,9 +492,13 @@ class Search:
             if f is not alike[chosen] and r <= RESIDUAL_ALIKE * residuals[chosen]
         ]
         answer = [alike[chosen], *close, *fits[1:]]
-        # the turns were chosen on the pose they turn: from a turned winner, choose them again
-        # (docs/decisions.md#beyond-the-evaluations-draw)
-        if repeat and alike[chosen] is not best:
+        reversing = symmetry.near_reversing
+        flips = [t for t, k in zip(turned, order, strict=True) if reversing[k]]
+        flipped = any(alike[chosen] is t for t in flips)
+        # the turns were chosen on the pose they turn: one that fit poorly may have left out
+        # the right one (docs/decisions.md#beyond-the-evaluations-draw)
+        poor = alike[chosen] is not best and best.score < self.settings.excellent
+        if repeat and (flipped or poor):
             return self.resolve_near(answer, repeat=False)
         return answer
 
