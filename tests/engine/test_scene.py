@@ -17,6 +17,7 @@ from service.engine.alignment import turned_about
 from service.engine.answer import AlternativePose
 from service.engine.confidence import Calibration
 from service.engine.engine import Engine
+from service.engine.frame import Frame
 from service.engine.mapping import Mapper
 from service.engine.projection import DepthImage
 from service.engine.sampling import sample_surface_faces
@@ -569,12 +570,15 @@ def test_a_region_an_instance_took_points_from_is_searched_again(engine):
     assert again == [] and kept == []
 
 
-def test_a_part_the_frame_holds_several_of_is_judged_as_told(engine):
-    # three boxes apart on a table and a cube elsewhere in the gallery; a frame calibration
-    # that trusts an instance by its points alone, doubting the box seen by the fewest, and
-    # one for frames told their parts that trusts every instance. Two matches make the box a
-    # part the frame holds several of, and the doubted box is judged again as a frame told
-    # the box would be: a match (docs/decisions.md#a-part-the-frame-holds-several-of)
+def logit(p: float) -> float:
+    return float(np.log(p / (1 - p)))
+
+
+def three_boxes(engine: Engine) -> tuple[dict, Frame, Calibration, dict]:
+    """Three boxes apart on a table and a cube elsewhere in the gallery: the meshes, the
+    frame, a calibration that trusts every instance, and the changes to it that trust an
+    instance by its points alone: 0.45 confident at the fewest points a box shows (uncertain),
+    0.95 at the next fewest (a match)."""
     meshes = {"box": trimesh.creation.box((0.08, 0.06, 0.04))}
     meshes["cube"] = trimesh.creation.box((0.03, 0.025, 0.02))
     box = meshes["box"]
@@ -586,8 +590,6 @@ def test_a_part_the_frame_holds_several_of_is_judged_as_told(engine):
     assert [d.answer.label for d in found] == ["box"] * 3
     fewest, next_fewest = sorted(d.evidence["points"] for d in found)[:2]
     assert next_fewest > fewest
-    # the confidence 0.45 at the fewest points (uncertain), 0.95 at the next (a match)
-    logit = lambda p: np.log(p / (1 - p))  # noqa: E731
     at = trusting.features.index("points")
     weights, mean, spread = (
         np.zeros(len(trusting.features)),
@@ -596,53 +598,42 @@ def test_a_part_the_frame_holds_several_of_is_judged_as_told(engine):
     )
     weights[at], mean[at] = 1.0, fewest
     spread[at] = (next_fewest - fewest) / (logit(0.95) - logit(0.45))
+    by_points = {"weights": weights, "mean": mean, "spread": spread, "bias": logit(0.45)}
+    return meshes, frame, trusting, by_points
+
+
+def verdicts_of(engine: Engine, meshes: dict, frame: Frame, calibration: Calibration) -> list:
+    """The boxes' verdicts in ``frame``, judged by the frame ``calibration``."""
+    frames_calibrated = Engine(engine.mapper, SETTINGS.engine, engine.calibration, calibration)
+    judged = registered(frames_calibrated, meshes)
+    found = judged.detect(frame).detections
+    assert [d.answer.label for d in found] == ["box"] * 3
+    return sorted(d.answer.verdict for d in found)
+
+
+def test_a_part_the_frame_holds_several_of_is_judged_as_told(engine):
+    # the three boxes, a frame calibration that trusts an instance by its points alone,
+    # doubting the box seen by the fewest, and one for frames told their parts that trusts
+    # every instance. Two matches make the box a part the frame holds several of, and the
+    # doubted box is judged again as a frame told the box would be: a match
+    # (docs/decisions.md#a-part-the-frame-holds-several-of)
+    meshes, frame, trusting, by_points = three_boxes(engine)
     for told, verdicts in ((None, ["match", "match", "uncertain"]), (trusting, ["match"] * 3)):
-        doubting = one_fit(
-            weights=weights, mean=mean, spread=spread, bias=logit(0.45), accept=0.9, told=told
-        )
-        judged = registered(
-            Engine(engine.mapper, SETTINGS.engine, engine.calibration, doubting), meshes
-        )
-        found = judged.detect(frame).detections
-        assert [d.answer.label for d in found] == ["box"] * 3
-        assert sorted(d.answer.verdict for d in found) == sorted(verdicts)
+        doubting = one_fit(**by_points, accept=0.9, told=told)
+        assert verdicts_of(engine, meshes, frame, doubting) == sorted(verdicts)
 
 
 def test_a_part_matched_several_times_once_settled_is_looked_for_again(engine):
-    # the three boxes above, a first fit that doubts every instance, and a settled fit (what
-    # is left around) that trusts the two boxes seen by the most points: the frame then holds
-    # several boxes only once the search is done, and the third is judged again as a frame
-    # told the box would be (docs/decisions.md#a-part-the-frame-holds-several-of)
-    meshes = {"box": trimesh.creation.box((0.08, 0.06, 0.04))}
-    meshes["cube"] = trimesh.creation.box((0.03, 0.025, 0.02))
-    box = meshes["box"]
-    placed = [(box, *resting(box, spin(25 + 40 * k), 0.14 * k - 0.14, 0.0)) for k in range(3)]
-    frame = frame_of(shoot(placed, table()))
-    trusting = one_fit(bias=50.0)
-    probe = registered(Engine(engine.mapper, SETTINGS.engine, engine.calibration, trusting), meshes)
-    found = probe.detect(frame).detections
-    assert [d.answer.label for d in found] == ["box"] * 3
-    fewest, next_fewest = sorted(d.evidence["points"] for d in found)[:2]
-    logit = lambda p: np.log(p / (1 - p))  # noqa: E731
-    at = trusting.features.index("points")
-    weights, mean, spread = (
-        np.zeros(len(trusting.features)),
-        trusting.mean.copy(),
-        trusting.spread.copy(),
-    )
-    weights[at], mean[at] = 1.0, fewest
-    spread[at] = (next_fewest - fewest) / (logit(0.95) - logit(0.45))
-    settled = one_fit(weights=weights, mean=mean, spread=spread, bias=logit(0.45), accept=0.9)
+    # the three boxes, a first fit that doubts every instance, and a settled fit (what is
+    # left around) that trusts an instance by its points alone: the frame then holds several
+    # boxes only once the search is done, and the third is judged again as a frame told the
+    # box would be (docs/decisions.md#a-part-the-frame-holds-several-of)
+    meshes, frame, trusting, by_points = three_boxes(engine)
+    settled = one_fit(**by_points, accept=0.9)
+    doubt_all = {"weights": np.zeros(len(trusting.features)), "bias": logit(0.45)}
     for told, verdicts in ((None, ["match", "match", "uncertain"]), (trusting, ["match"] * 3)):
-        doubting = one_fit(
-            weights=np.zeros(len(weights)), bias=logit(0.45), accept=0.9, told=told, settled=settled
-        )
-        judged = registered(
-            Engine(engine.mapper, SETTINGS.engine, engine.calibration, doubting), meshes
-        )
-        found = judged.detect(frame).detections
-        assert [d.answer.label for d in found] == ["box"] * 3
-        assert sorted(d.answer.verdict for d in found) == sorted(verdicts)
+        doubting = one_fit(**doubt_all, accept=0.9, told=told, settled=settled)
+        assert verdicts_of(engine, meshes, frame, doubting) == sorted(verdicts)
 
 
 def test_what_nearer_parts_hide_is_not_missed_by_the_chain(engine, one_box):
