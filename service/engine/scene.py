@@ -87,6 +87,7 @@ from service.engine.verification import surface_distance
 log = logging.getLogger(__name__)
 
 NOTHING_AROUND = float(np.log10(0.01))  # ``evidence``'s ``around`` where nothing is left around
+AROUND_SAID = "that no part explains"  # ``Scan.say_around``'s reason, known again by this
 
 
 @dataclass
@@ -1016,13 +1017,15 @@ class Scan:
     @staticmethod
     def say_around(instance: Instance) -> None:
         """A reason for an instance not a match with ``AROUND_DOUBT`` of its points' count
-        around it, once the frame is searched (``judged_around``)."""
+        around it, once the frame is searched (``judged_around``); the one said when it was
+        judged before goes (a part found several times judges it again)."""
         answer, said = instance.answer, instance.evidence
+        answer.reasons = [r for r in answer.reasons if AROUND_SAID not in r]
         if answer.verdict == "match" or said["around"] < np.log10(AROUND_DOUBT + 0.01):
             return
         share = 10 ** said["around"] - 0.01
         answer.reasons.append(
-            f"{round(share * len(instance.claimed))} of the frame's points that no part explains "
+            f"{round(share * len(instance.claimed))} of the frame's points {AROUND_SAID} "
             f"lie around it ({share:.0%} of those it explains): it may be a piece of a part not "
             "registered or not found"
         )

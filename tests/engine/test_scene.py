@@ -24,6 +24,7 @@ from service.engine.sampling import sample_surface_faces
 from service.engine.scene import (
     NOTHING_AROUND,
     Instance,
+    Scan,
     around,
     evidence,
     seen_through,
@@ -153,6 +154,21 @@ def test_what_no_part_explains_around_an_instance_lowers_its_confidence(engine):
     assert settled.confidence(said[True]) < settled.confidence(alone)
     about = [r for d in found.values() for r in d.answer.reasons if "no part explains" in r]
     assert len(about) == 1 and about[0] in found[True].answer.reasons
+
+
+def test_what_is_around_an_instance_is_said_once_however_often_it_is_judged(engine, one_box):
+    # an instance judged again (a part found several times once the frame is settled) says
+    # what is around it once, as measured last
+    box, shot = one_box
+    answer = engine.detect(frame_of(shot)).detections[0].answer
+    doubted = replace(answer, verdict="uncertain", reasons=["the confidence is low"])
+    instance = Instance(doubted, box, np.arange(100), evidence={"around": np.log10(0.51)})
+    Scan.say_around(instance)
+    instance.evidence["around"] = np.log10(0.31)
+    Scan.say_around(instance)
+    about = [r for r in instance.answer.reasons if "no part explains" in r]
+    assert len(about) == 1 and about[0].startswith("30 of the frame's points")
+    assert instance.answer.reasons[0] == "the confidence is low"
 
 
 def one_fit(**changes) -> Calibration:
