@@ -910,7 +910,7 @@ class Engine:
         most: int,
         parts: list[str] | None = None,
     ) -> list:
-        """More instances of the parts matched ``SEVERAL`` times or more in the frame (or of
+        """More instances of the parts held ``SEVERAL`` times or more in the frame (or of
         ``parts``), looked for where nothing more was found, told only those parts: a frame
         that holds several of one part (a bin) may hold more of it, touching them, that the
         search among every part missed (docs/decisions.md#detect). Those found already and
@@ -938,7 +938,7 @@ class Engine:
     def _settled_several(
         self, scan: Scan, found: list, labels: np.ndarray, most: int, searched: list[str]
     ) -> list:
-        """``found`` with the parts matched ``SEVERAL`` times only once judged on what is left
+        """``found`` with the parts held ``SEVERAL`` times only once judged on what is left
         around them (not among those ``searched`` again already) looked for again, as
         ``_found_again`` does, and the instances checked and judged once more
         (docs/decisions.md#a-part-the-frame-holds-several-of)."""

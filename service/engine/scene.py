@@ -58,6 +58,7 @@ from service.engine.tuning import (
     FINISH_POINTS,
     FRAGMENT,
     FRAGMENTS_ADD,
+    HELD_FROM,
     INSTANCE_FLOOR,
     JOIN_PIXELS,
     JOIN_SCALES,
@@ -149,10 +150,23 @@ def claimable(
 
 
 def several(instances: list[Instance]) -> list[str]:
-    """The parts matched ``SEVERAL`` times or more among ``instances``: a frame that holds
+    """The parts ``held`` ``SEVERAL`` times or more among ``instances``: a frame that holds
     several of one part (docs/decisions.md#a-part-the-frame-holds-several-of)."""
-    matched = Counter(i.answer.label for i in instances if i.answer.verdict == "match")
-    return sorted(label for label, count in matched.items() if count >= SEVERAL)
+    counted = Counter(i.answer.label for i in instances if held(i))
+    return sorted(label for label, count in counted.items() if count >= SEVERAL)
+
+
+def held(instance: Instance) -> bool:
+    """Whether ``instance`` counts towards the times its frame holds its part: a match, or one
+    the threshold alone refuses at ``HELD_FROM`` or more, the chain agreeing and points
+    enough: a bin of one small part may hold no single instance sure enough
+    (docs/decisions.md#several-likely-instances)."""
+    answer = instance.answer
+    if answer.verdict == "match":
+        return True
+    confidence = answer.confidence or 0.0
+    enough = len(instance.claimed) >= MATCH_POINTS
+    return enough and may_match(instance.evidence, confidence, HELD_FROM)
 
 
 def settle_claims(instances: list[Instance], count: int, keep_share: float) -> list[Instance]:

@@ -652,6 +652,18 @@ def test_a_part_matched_several_times_once_settled_is_looked_for_again(engine):
         assert verdicts_of(engine, meshes, frame, doubting) == sorted(verdicts)
 
 
+def test_a_part_held_several_times_though_never_matched_is_judged_as_told(engine):
+    # the three boxes and a frame calibration that trusts an instance by its points alone,
+    # but whose threshold (0.99) refuses the boxes seen at 0.95 and less: two boxes at least
+    # HELD_FROM confident make the box a part the frame holds several of, and the boxes are
+    # judged again as a frame told the box would be (docs/decisions.md#several-likely-instances)
+    meshes, frame, trusting, by_points = three_boxes(engine)
+    alone = verdicts_of(engine, meshes, frame, one_fit(**by_points, accept=0.99, told=None))
+    assert alone.count("match") <= 1  # the boxes seen at 0.45 and at 0.95 refused
+    told = one_fit(**by_points, accept=0.99, told=trusting)
+    assert verdicts_of(engine, meshes, frame, told) == ["match"] * 3
+
+
 def test_what_nearer_parts_hide_is_not_missed_by_the_chain(engine, one_box):
     # a third of the box hidden by something nearer (its pixels' points brought a fifth of
     # the way to the camera): the chain, asked about what is left, counts the hidden third as
