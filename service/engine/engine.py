@@ -915,7 +915,9 @@ class Engine:
         that holds several of one part (a bin) may hold more of it, touching them, that the
         search among every part missed (docs/decisions.md#detect). Those found already and
         doubted are judged again as a frame told those parts would be
-        (docs/decisions.md#a-part-the-frame-holds-several-of)."""
+        (docs/decisions.md#a-part-the-frame-holds-several-of); other parts' doubted instances
+        may be poses of them, and their points are searched again too
+        (docs/decisions.md#several-likely-instances)."""
         parts = several(found) if parts is None else parts
         if not parts:
             return []
@@ -924,8 +926,12 @@ class Engine:
             return []
         again = scan.narrowed(told)  # judged as a frame told its parts
         for instance in found:  # ... the instances of them found already, too
-            if instance.answer.label in parts and instance.answer.verdict != "match":
+            if instance.answer.verdict == "match":
+                continue
+            if instance.answer.label in parts:
                 again.judge(instance)
+            else:  # another part's doubted pose on one of them: its points searched, told
+                again.free[instance.claimed] = True
         if len(found) >= most or not scan.in_time():
             return []
         try:

@@ -533,14 +533,20 @@ def test_a_pair_of_failed_segments_claimed_since_is_not_joined(engine):
 def scan_of(engine: Engine, shot):
     """The search ``Engine.detect`` makes of a shot's frame, its supports set aside: the scan,
     its segments' labels, and which object each of its points shows (-1: none)."""
-    frame = frame_of(shot)
+    scan, labels, rest = frame_scan(engine, frame_of(shot))
+    return scan, labels, shot.shows.ravel()[rest.index]
+
+
+def frame_scan(engine: Engine, frame: Frame):
+    """The search ``Engine.detect`` makes of ``frame``: the scan, its segments' labels, and
+    the frame's points it searches."""
     query = engine.query(None, None, True, None, frame.viewpoint)
     scales = engine._frame_scales(query, frame)
     thin = frame.thinned(scales.min() / THIN_PER_SCALE)
     keep, supports = set_aside_supports(thin, frame.pixel_angle(), scales, query.rng)
     rest = thin.take(keep)
     scan = engine._scan(query, rest, thin, supports, scales, None, None, None, None)
-    return scan, segments(rest, frame.pixel_angle()), shot.shows.ravel()[rest.index]
+    return scan, segments(rest, frame.pixel_angle()), rest
 
 
 def test_a_segment_of_two_parts_one_before_the_other_is_split_finer(engine):
@@ -662,6 +668,23 @@ def test_a_part_held_several_times_though_never_matched_is_judged_as_told(engine
     assert alone.count("match") <= 1  # the boxes seen at 0.45 and at 0.95 refused
     told = one_fit(**by_points, accept=0.99, told=trusting)
     assert verdicts_of(engine, meshes, frame, told) == ["match"] * 3
+
+
+def test_a_doubted_other_part_on_a_part_held_several_times_is_searched_again(engine):
+    # the three boxes, each a match, but one's points taken by a doubted pose of the cube (as
+    # another part's pose may take a bin's part): the box, held several times, is looked for
+    # again told alone, there too, and found (docs/decisions.md#several-likely-instances)
+    meshes, frame, trusting, _ = three_boxes(engine)
+    probe = registered(Engine(engine.mapper, SETTINGS.engine, engine.calibration, trusting), meshes)
+    scan, labels, _ = frame_scan(probe, frame)
+    found = scan.instances(labels, 20)
+    assert [i.answer.label for i in found] == ["box"] * 3
+    doubted = found[0]
+    doubted.answer.label, doubted.answer.verdict = "cube", "uncertain"
+    doubted.entry = probe.entry("cube")
+    more = probe._found_again(scan, found, labels, 20, ["box"])
+    assert [i.answer.label for i in more] == ["box"]
+    assert np.isin(more[0].claimed, doubted.claimed).mean() > 0.9
 
 
 def test_what_nearer_parts_hide_is_not_missed_by_the_chain(engine, one_box):
