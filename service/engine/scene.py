@@ -158,15 +158,16 @@ def several(instances: list[Instance]) -> list[str]:
 
 def held(instance: Instance) -> bool:
     """Whether ``instance`` counts towards the times its frame holds its part: a match, or one
-    the threshold alone refuses at ``HELD_FROM`` or more, the chain agreeing and points
-    enough: a bin of one small part may hold no single instance sure enough
-    (docs/decisions.md#several-likely-instances)."""
-    answer = instance.answer
-    if answer.verdict == "match":
-        return True
-    confidence = answer.confidence or 0.0
+    that would be at ``HELD_FROM``: a bin of one small part may hold no single instance sure
+    enough (docs/decisions.md#several-likely-instances)."""
+    return instance.answer.verdict == "match" or matchable(instance, HELD_FROM)
+
+
+def matchable(instance: Instance, threshold: float) -> bool:
+    """Whether ``instance`` may be a "match" at ``threshold``: ``may_match``, and
+    ``MATCH_POINTS`` points claimed (docs/decisions.md#detect)."""
     enough = len(instance.claimed) >= MATCH_POINTS
-    return enough and may_match(instance.evidence, confidence, HELD_FROM)
+    return enough and may_match(instance.evidence, instance.answer.confidence or 0.0, threshold)
 
 
 def settle_claims(instances: list[Instance], count: int, keep_share: float) -> list[Instance]:
@@ -990,8 +991,7 @@ class Scan:
             calibration = calibration.told
         answer.confidence = calibration.confidence(said)
         threshold = next(t for t in (self.min_confidence, calibration.accept) if t is not None)
-        few = len(instance.claimed) < MATCH_POINTS  # docs/decisions.md#detect
-        if may_match(said, answer.confidence, threshold) and not few:
+        if matchable(instance, threshold):
             answer.verdict, answer.reasons = "match", []
             doubt(answer, share=False)  # the chain's confidence, shared among them, is a feature
             self.say_around(instance)  # a look-alike doubted
@@ -1002,7 +1002,7 @@ class Scan:
             reasons.append(
                 f"the confidence {answer.confidence:.2f} is below the threshold {threshold:.2f}"
             )
-        if few:
+        if len(instance.claimed) < MATCH_POINTS:
             reasons.append(
                 f"only {len(instance.claimed)} of the frame's points (thinned) are explained by "
                 f"{answer.label}, fewer than the {MATCH_POINTS} a match needs: too few to tell "

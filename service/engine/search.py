@@ -493,8 +493,9 @@ class Search:
         ]
         answer = [alike[chosen], *close, *fits[1:]]
         reversing = symmetry.near_reversing
-        flips = [t for t, k in zip(turned, order, strict=True) if reversing[k]]
-        flipped = any(alike[chosen] is t for t in flips)
+        flipped = any(
+            alike[chosen] is t for t, k in zip(turned, order, strict=True) if reversing[k]
+        )
         # the turns were chosen on the pose they turn: one that fit poorly may have left out
         # the right one (docs/decisions.md#beyond-the-evaluations-draw)
         poor = alike[chosen] is not best and best.score < self.settings.excellent

@@ -607,7 +607,7 @@ def three_boxes(engine: Engine) -> tuple[dict, Frame, Calibration, dict]:
     placed = [(box, *resting(box, spin(25 + 40 * k), 0.14 * k - 0.14, 0.0)) for k in range(3)]
     frame = frame_of(shoot(placed, table()))
     trusting = one_fit(bias=50.0)
-    probe = registered(Engine(engine.mapper, SETTINGS.engine, engine.calibration, trusting), meshes)
+    probe = calibrated(engine, meshes, trusting)
     found = probe.detect(frame).detections
     assert [d.answer.label for d in found] == ["box"] * 3
     fewest, next_fewest = sorted(d.evidence["points"] for d in found)[:2]
@@ -624,11 +624,15 @@ def three_boxes(engine: Engine) -> tuple[dict, Frame, Calibration, dict]:
     return meshes, frame, trusting, by_points
 
 
+def calibrated(engine: Engine, meshes: dict, calibration: Calibration) -> Engine:
+    """An engine holding ``meshes``, its frames judged by ``calibration``."""
+    frames_calibrated = Engine(engine.mapper, SETTINGS.engine, engine.calibration, calibration)
+    return registered(frames_calibrated, meshes)
+
+
 def verdicts_of(engine: Engine, meshes: dict, frame: Frame, calibration: Calibration) -> list:
     """The boxes' verdicts in ``frame``, judged by the frame ``calibration``."""
-    frames_calibrated = Engine(engine.mapper, SETTINGS.engine, engine.calibration, calibration)
-    judged = registered(frames_calibrated, meshes)
-    found = judged.detect(frame).detections
+    found = calibrated(engine, meshes, calibration).detect(frame).detections
     assert [d.answer.label for d in found] == ["box"] * 3
     return sorted(d.answer.verdict for d in found)
 
@@ -675,7 +679,7 @@ def test_a_doubted_other_part_on_a_part_held_several_times_is_searched_again(eng
     # another part's pose may take a bin's part): the box, held several times, is looked for
     # again told alone, there too, and found (docs/decisions.md#several-likely-instances)
     meshes, frame, trusting, _ = three_boxes(engine)
-    probe = registered(Engine(engine.mapper, SETTINGS.engine, engine.calibration, trusting), meshes)
+    probe = calibrated(engine, meshes, trusting)
     scan, labels, _ = frame_scan(probe, frame)
     found = scan.instances(labels, 20)
     assert [i.answer.label for i in found] == ["box"] * 3
