@@ -382,6 +382,9 @@ def _add_metrics(app: FastAPI) -> None:
          "processes", "wanted"),
         ("dpc_engine_process_jobs",
          "Alignments and detections the engine worker processes answered", "processes", "jobs"),
+        ("dpc_engine_process_segments",
+         "Segments of a lone /detect's frame that the engine worker processes searched",
+         "processes", "segments"),
     ):  # fmt: skip
         _read_at_scrape(Gauge(name, described, registry=registry), app, holder, field)
 

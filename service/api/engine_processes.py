@@ -44,6 +44,7 @@ class EngineProcesses:
         self.settings = settings
         self.count = count
         self.jobs = 0  # jobs the workers answered (a metric)
+        self.segments = 0  # ... of which a lone frame's segments searched there (a metric)
         self.failed = False  # the workers could not start: this process answers
         self._pool: ProcessPoolExecutor | None = None
         self._lock = threading.Lock()
@@ -123,20 +124,21 @@ class EngineProcesses:
                 self._running -= 1
 
     def _submitter(self, pool: ProcessPoolExecutor) -> Callable[..., Future]:
-        """``Engine.align`` in the workers, answering a future: ``Engine.detect``'s
+        """An engine's method in the workers, by name, answering a future: ``Engine.detect``'s
         ``submit`` (docs/decisions.md#detect-on-two-cores)."""
 
-        def submit(*args: Any, **kwargs: Any) -> Future:
-            future = pool.submit(_job, "align", args, kwargs)
-            future.add_done_callback(self._answered)
+        def submit(method: str, *args: Any, **kwargs: Any) -> Future:
+            future = pool.submit(_job, method, args, kwargs)
+            future.add_done_callback(lambda done: self._answered(done, method))
             return future
 
         return submit
 
-    def _answered(self, future: Future) -> None:
+    def _answered(self, future: Future, method: str) -> None:
         if not future.cancelled() and future.exception() is None:
             with self._lock:
                 self.jobs += 1
+                self.segments += method == "search_segments"
 
     def _replace(self, broken: ProcessPoolExecutor) -> None:
         """Drop a pool that lost a worker and start a new one in the background; until it is
@@ -187,10 +189,10 @@ def _job(method: str, args: tuple, kwargs: dict):
 def _call(engine: Engine, method: str, args: tuple, kwargs: dict):
     """The engine's ``method``, here or in a worker; a frame's detection with the heap's
     thresholds raised (docs/decisions.md#the-heaps-thresholds)."""
-    if method != "detect":
+    if method not in ("detect", "search_segments"):
         return getattr(engine, method)(*args, **kwargs)
     with memory.frame_heap():
-        return engine.detect(*args, **kwargs)
+        return getattr(engine, method)(*args, **kwargs)
 
 
 def _follow(catalog: Catalog, seen: int | None) -> int | None:

@@ -50,7 +50,7 @@ from service.engine.principal_axes import flatness, one_line, thinness
 from service.engine.projection import DepthImage
 from service.engine.query import Observed, Query, Ranking, Stopwatch
 from service.engine.reference import Reference
-from service.engine.scene import Scan, settle_claims, several
+from service.engine.scene import Found, Scan, settle_claims, several
 from service.engine.search import Plan, Search, excellent, sure_first
 from service.engine.segments import segments
 from service.engine.supports import Noise, apply_supports, set_aside_supports
@@ -901,6 +901,45 @@ class Engine:
             deadline,
             submit,
         )
+
+    def search_segments(
+        self,
+        rest: Frame,
+        camera: DepthImage | None,
+        noise: Noise,
+        sizes: tuple[float, float],
+        labels: np.ndarray,
+        order: list[int],
+        free: np.ndarray,
+        candidates: list[str] | None,
+        floor: float,
+        min_confidence: float | None,
+        deadline: float | None,
+        most: int,
+    ) -> tuple[list[Found], list[int], bool]:
+        """A share of a frame's segments searched here while the process that runs
+        ``detect`` searches the rest (``scene.Shared``): what was found, the segments where
+        nothing was, and whether every region was searched in time. ``free``: the points
+        not yet taken there."""
+        query = self.query(candidates, None, True, None, rest.viewpoint)
+        scan = Scan(
+            self.align,
+            self.seen_as,
+            self.settings.tolerance,
+            self.scene_calibration,
+            query,
+            rest,
+            camera,
+            noise,
+            floor,
+            min_confidence,
+            sizes,
+            deadline,
+        )
+        scan.free = free
+        found: list = []
+        failed = scan.search(labels, order, most, found, ask_ahead=False)
+        return [Found.of(instance) for instance in found], failed, scan.complete
 
     def _found_again(
         self,

@@ -21,8 +21,9 @@ what the frame's depth says of the pose), where one is fitted; else the chain's.
 from __future__ import annotations
 
 import logging
+import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
@@ -105,6 +106,29 @@ class Instance:
     @property
     def centre(self) -> np.ndarray:
         return self.answer.rotation @ self.entry.frame.centroid + self.answer.translation
+
+
+@dataclass(frozen=True)
+class Found:
+    """An instance as another process sends it back: its part by name (each process holds
+    its own gallery), the rest as found (``Shared.gathered``)."""
+
+    label: str
+    answer: Alignment
+    claimed: np.ndarray
+    distance: np.ndarray
+    evidence: dict[str, float]
+    told: bool
+
+    @classmethod
+    def of(cls, found: Instance) -> Found:
+        return cls(
+            found.answer.label, found.answer, found.claimed, found.distance, found.evidence,
+            found.told,
+        )  # fmt: skip
+
+    def instance(self, entry: Entry) -> Instance:
+        return Instance(self.answer, entry, self.claimed, self.distance, self.evidence, self.told)
 
 
 @dataclass(frozen=True)
@@ -338,6 +362,91 @@ def may_match(said: dict[str, float], confidence: float, threshold: float) -> bo
     return confidence >= threshold and chain_confidence(said) >= CHAIN_AGREES
 
 
+class Shared:
+    """A frame's segments searched in two processes at once: this one takes the largest left
+    from the front of ``queue``, another the smallest from its back, one at a time, until
+    none is left (docs/decisions.md#segments-on-two-cores). The other process searches each
+    on its own, blind to what this one took: the global check settles a point both claimed."""
+
+    def __init__(self, scan: Scan, labels: np.ndarray, queue: deque, most: int):
+        self.scan, self.labels, self.queue, self.most = scan, labels, queue, most
+        self.done: list[tuple[int, Future]] = []  # each segment sent, and its answer
+        self.idle = threading.Event()  # no segment is being searched there
+        self.idle.set()
+        self.lock = threading.Lock()
+
+    def front(self) -> int | None:
+        """The largest segment left, taken for this process; None once none is left."""
+        with self.lock:
+            return self.queue.popleft() if self.queue else None
+
+    def next(self, _: Future | None = None) -> bool:
+        """The next segment (the smallest left) sent, once the one before is answered;
+        whether one was."""
+        with self.lock:
+            try:
+                segment = self.queue.pop()
+            except IndexError:
+                self.idle.set()
+                return False
+            self.idle.clear()
+            scan = self.scan
+            candidates, _kwargs = scan.asking(0.0)
+            try:
+                future = scan.submit(
+                    "search_segments",
+                    scan.frame,
+                    scan.camera,
+                    scan.noise,
+                    scan.sizes,
+                    self.labels,
+                    [segment],
+                    scan.free.copy(),  # what this one took so far is out there too
+                    candidates if scan.told else None,
+                    scan.floor,
+                    scan.min_confidence,
+                    scan.deadline,
+                    self.most,
+                )
+            except Exception:  # the other process is gone (a broken pool): searched here
+                log.warning("a segment cannot be searched elsewhere", exc_info=True)
+                self.queue.append(segment)
+                self.idle.set()
+                return False
+            self.done.append((segment, future))
+        future.add_done_callback(self.next)
+        return True
+
+    def gathered(self, found: list[Instance], wait: bool = True) -> list[int]:
+        """What the other process found added to ``found`` (up to ``most``), its points taken
+        out; the segments where nothing was found there. A segment is searched here instead
+        where the search there failed, or answered with a part this gallery does not hold (a
+        registration landed meanwhile). ``wait``: until every segment is answered; else
+        those answered so far."""
+        scan, entries, failed = self.scan, self.scan.query.snapshot.entries, []
+        if wait:
+            self.idle.wait()
+            while self.queue:  # left when a segment could not be sent
+                failed += scan.search(self.labels, [self.queue.popleft()], self.most, found)
+        with self.lock:
+            answered = [(s, f) for s, f in self.done if f.done()]
+            self.done = [(s, f) for s, f in self.done if not f.done()]
+        for segment, future in answered:
+            try:
+                records, missed, complete = future.result()
+            except Exception:  # a worker died: searched here
+                log.warning("a segment's search elsewhere failed; searching here", exc_info=True)
+                records = None
+            if records is None or any(r.label not in entries for r in records):
+                failed += scan.search(self.labels, [segment], self.most, found, ask_ahead=False)
+                continue
+            scan.complete = scan.complete and complete
+            failed += missed
+            for record in records[: max(0, self.most - len(found))]:
+                scan.take(record.instance(entries[record.label]), found)
+        return failed
+
+
 @dataclass
 class Scan:
     """One ``Engine.detect``: the frame's points left once its supports are set aside, what
@@ -384,16 +493,48 @@ class Scan:
         return self.complete
 
     def instances(self, labels: np.ndarray, most: int) -> list[Instance]:
-        """Each segment, largest first, searched until nothing more fits in it (``MAX_TRIES``
-        searches at most): once an instance is taken out, each piece of what is left
-        (``pieces``), and once more what is left of a region where nothing was found that it
-        took points from (``freed``); then the segments where nothing was found, with the
-        fragments by them (``with_fragments``), then joined with a neighbour in the image."""
+        """Each segment, largest first, searched until nothing more fits in it (``search``),
+        the smallest ones meanwhile in another process (``Shared``); then the segments where
+        nothing was found, with the fragments by them (``with_fragments``), then joined with a
+        neighbour in the image."""
         found: list[Instance] = []
         sizes = np.bincount(labels) if len(labels) else np.zeros(0, int)
-        failed = []
         order = [s for s in np.argsort(-sizes, kind="stable") if sizes[s] >= MIN_SEGMENT]
-        self.ask_ahead([np.flatnonzero(labels == segment) for segment in order])
+        queue = deque(int(s) for s in order)
+        shared = Shared(self, labels, queue, most) if self.submit and len(order) >= 2 else None
+        if shared is None or not shared.next():  # none sent: each searched here, in turn
+            failed = self.search(labels, order, most, found)
+        else:
+            failed = []
+            while (segment := shared.front()) is not None:
+                failed += shared.gathered(found, wait=False)  # what it took is out
+                failed += self.search(labels, [segment], most, found, ask_ahead=False)
+            failed += shared.gathered(found)
+        # the failed segments' neighbours in the image: fragments, and other failed segments
+        small = np.flatnonzero((sizes > 0) & (sizes < MIN_SEGMENT))
+        chosen = np.concatenate([np.asarray(failed, dtype=np.intp), small])
+        near = adjacent(self.frame, labels, chosen, JOIN_PIXELS) if failed else set()
+        found += self.with_fragments(
+            labels, sizes, failed, set(small.tolist()), near, most - len(found)
+        )
+        return found + self.joined(labels, failed, near, most - len(found))
+
+    def search(
+        self,
+        labels: np.ndarray,
+        order: list[int],
+        most: int,
+        found: list[Instance],
+        ask_ahead: bool = True,
+    ) -> list[int]:
+        """The segments ``order`` searched in turn, each until nothing more fits in it
+        (``MAX_TRIES`` searches at most), the instances added to ``found``: once an instance
+        is taken out, each piece of what is left (``pieces``), and once more what is left of a
+        region where nothing was found that it took points from (``freed``). The segments
+        where nothing was found at the first search."""
+        failed: list[int] = []
+        if ask_ahead:
+            self.ask_ahead([np.flatnonzero(labels == segment) for segment in order])
         for segment in order:
             pending, tries = [np.flatnonzero(labels == segment)], 0
             missed: list[np.ndarray] = []  # the regions of it where nothing was found
@@ -407,7 +548,7 @@ class Scan:
                 if not self.worth_searching(region):
                     continue
                 if not self.in_time():
-                    return found
+                    return failed
                 tries += 0 if retry else 1
                 instance = self.instance(region)
                 if instance is None:  # touching parts, a depth jump between them
@@ -421,14 +562,7 @@ class Scan:
                 pending = pieces + pending
                 freed, missed = self.freed(missed, pending + again)
                 again += freed
-        # the failed segments' neighbours in the image: fragments, and other failed segments
-        small = np.flatnonzero((sizes > 0) & (sizes < MIN_SEGMENT))
-        chosen = np.concatenate([np.asarray(failed, dtype=np.intp), small])
-        near = adjacent(self.frame, labels, chosen, JOIN_PIXELS) if failed else set()
-        found += self.with_fragments(
-            labels, sizes, failed, set(small.tolist()), near, most - len(found)
-        )
-        return found + self.joined(labels, failed, near, most - len(found))
+        return failed
 
     def joined(self, labels: np.ndarray, failed: list[int], near: set, most: int) -> list:
         """The failed segments that ``near`` pairs, each pair searched as one region (no wider
@@ -622,7 +756,7 @@ class Scan:
             return
         try:
             candidates, kwargs = self.asking(sigma)
-            future = self.submit(sample, candidates, **kwargs)
+            future = self.submit("align", sample, candidates, **kwargs)
         except Exception:  # the other process is gone (a broken pool): all asked here
             log.warning("asks cannot be sent ahead; asking here", exc_info=True)
             self.submit = None

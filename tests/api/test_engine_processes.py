@@ -24,6 +24,7 @@ from service import settings as settings_module
 from service.engine.sampling import sample_surface
 from service.settings import ServerSettings, Settings
 from tests.conftest import empty_server
+from tests.frames import box, resting, shoot, spin
 from tests.meshes import pybullet_mesh
 from tests.servers import ProcessServer, eventually, needs_model
 
@@ -31,6 +32,7 @@ pytestmark = needs_model
 
 PARTS = {"duck": "duck.obj", "mug": "objects/mug.obj"}
 RAW = {"Content-Type": "application/octet-stream"}
+APART = ((0.0, -1.0), (70.0, 1.0))  # two ducks' turns and places, in their sizes, on a table
 
 
 def gauge(server, name: str) -> float:
@@ -198,6 +200,22 @@ def test_a_lone_request_is_answered_in_process_and_those_beside_it_by_the_worker
             assert answered > jobs
             return answered
 
+        jobs = eventually(asked_ahead, 10, every_s=0.1)
+        assert gauge(server, "dpc_engine_process_segments") == 0  # one segment: none there
+        # a lone frame of two ducks apart on a table: two segments, one searched in the worker
+        # while the other is here (docs/decisions.md#segments-on-two-cores)
+        duck = pybullet_mesh(PARTS["duck"])
+        size = float(np.ptp(duck.vertices, axis=0).max())
+        placed = [(duck, *resting(duck, spin(turn), x * size, 0.0)) for turn, x in APART]
+        floor = [box((6 * size, 6 * size, 0.02 * size), (0.0, 0.0, -0.01 * size))]  # its table
+        shot = shoot(placed, floor, distance=5 * size)
+        answer = server.client.post("/detect", files={"file": ("frame.pcd", shot.pcd())})
+        assert answer.status_code == 200, answer.text[:300]
+        assert gauge(server, "dpc_engine_process_segments") >= 1
+        ducks = answer.json()["detections"]
+        assert [d["label"] for d in ducks] == ["duck", "duck"]
+        shown = [set(np.unique(shot.shows.reshape(-1)[d["indices"]])) - {-1} for d in ducks]
+        assert sorted(map(sorted, shown)) == [[0], [1]]  # one each
         jobs = eventually(asked_ahead, 10, every_s=0.1)
         start = threading.Barrier(6)
 

@@ -445,7 +445,8 @@ def test_what_is_left_of_a_segment_is_searched_piece_by_piece(box_and_cube):
 def test_asks_sent_ahead_to_another_process_answer_as_those_made_here(box_and_cube):
     # ``submit`` runs the chain elsewhere (here a thread of the real engine; the service's
     # worker processes): the segments' and their pieces' first asks are sent there at once,
-    # and the frame's answer is the one asked here alone (docs/decisions.md#detect-on-two-cores)
+    # and the frame's answer is the one asked here alone (docs/decisions.md#detect-on-two-cores).
+    # Where a segment's whole search cannot be sent, the segments are searched here in turn
     engine, meshes = box_and_cube
     frame = frame_of(cube_beside_the_box(meshes, 0.0, 0.7))
     align, sent = engine.align, []
@@ -455,7 +456,9 @@ def test_asks_sent_ahead_to_another_process_answer_as_those_made_here(box_and_cu
     finally:
         del engine.align
 
-    def submit(points, *args, **kwargs):
+    def submit(method, points, *args, **kwargs):
+        if method != "align":  # a segment's search is refused: each is searched here, in turn
+            raise RuntimeError(f"{method} is not sent")
         sent.append(len(points))
         return pool.submit(align, points, *args, **kwargs)
 
@@ -474,6 +477,37 @@ def test_asks_sent_ahead_to_another_process_answer_as_those_made_here(box_and_cu
         assert a.answer.confidence == b.answer.confidence
         np.testing.assert_array_equal(a.answer.rotation, b.answer.rotation)
         np.testing.assert_array_equal(a.indices, b.indices)
+
+
+def test_segments_searched_in_two_processes_find_what_one_finds(box_and_cube):
+    # the box, the cube and the ball apart: three segments. With ``submit`` (here a thread of
+    # the real engine; the service's worker processes) some are searched there while the
+    # rest are searched here, and the frame holds the same instances, no point claimed twice
+    # (docs/decisions.md#segments-on-two-cores)
+    engine, meshes = box_and_cube
+    box, cube, ball = meshes["box"], meshes["cube"], meshes["ball"]
+    placed = [
+        (box, *resting(box, spin(10), 0.0, 0.0)),
+        (cube, *resting(cube, spin(40), 0.17, 0.05)),
+        (ball, *resting(ball, spin(0), -0.16, -0.04)),
+    ]
+    frame = frame_of(shoot(placed, table(), distance=0.8))
+    alone = engine.detect(frame).detections
+    searched = []
+
+    def submit(method, *args, **kwargs):
+        searched.append(method)
+        return pool.submit(getattr(engine, method), *args, **kwargs)
+
+    with ThreadPoolExecutor(1) as pool:
+        shared = engine.detect(frame, submit=submit).detections
+    assert "search_segments" in searched, searched
+    assert sorted((d.answer.label, d.answer.verdict) for d in shared) == sorted(
+        (d.answer.label, d.answer.verdict) for d in alone
+    )
+    assert {"box", "cube"} <= {d.answer.label for d in shared if d.answer.verdict == "match"}
+    claimed = np.concatenate([d.indices for d in shared])
+    assert len(np.unique(claimed)) == len(claimed)
 
 
 def test_two_touching_boxes_are_found_whatever_the_search_draws(engine):
