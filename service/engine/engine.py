@@ -851,8 +851,8 @@ class Engine:
         found several times only then searched again as well. ``floor``:
         the least confidence of an instance (default ``INSTANCE_FLOOR``; the calibration
         collects them all with 0); ``deadline`` (``time.monotonic()``): no region is searched
-        after it; ``submit``: ``align`` in another process, answering a future
-        (``Scan.ask_ahead``)."""
+        after it; ``submit``: an engine method by name in another process, answering a
+        future (``Scan.ask_ahead``, ``scene.Shared``)."""
         query = self.query(candidates, None, True, None, frame.viewpoint)
         clock = Stopwatch()
         frame = frame if roi is None else frame.cropped(*roi)

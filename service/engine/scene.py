@@ -370,6 +370,8 @@ class Shared:
 
     def __init__(self, scan: Scan, labels: np.ndarray, queue: deque, most: int):
         self.scan, self.labels, self.queue, self.most = scan, labels, queue, most
+        self.rank = {segment: k for k, segment in enumerate(queue)}  # largest first
+        self.broken = False  # a search there failed: none is sent any more
         self.done: list[tuple[int, Future]] = []  # each segment sent, and its answer
         self.idle = threading.Event()  # no segment is being searched there
         self.idle.set()
@@ -384,11 +386,10 @@ class Shared:
         """The next segment (the smallest left) sent, once the one before is answered;
         whether one was."""
         with self.lock:
-            try:
-                segment = self.queue.pop()
-            except IndexError:
+            if self.broken or not self.queue:
                 self.idle.set()
                 return False
+            segment = self.queue.pop()
             self.idle.clear()
             scan = self.scan
             candidates, _kwargs = scan.asking(0.0)
@@ -411,6 +412,7 @@ class Shared:
             except Exception:  # the other process is gone (a broken pool): searched here
                 log.warning("a segment cannot be searched elsewhere", exc_info=True)
                 self.queue.append(segment)
+                self.broken = True
                 self.idle.set()
                 return False
             self.done.append((segment, future))
@@ -419,32 +421,56 @@ class Shared:
 
     def gathered(self, found: list[Instance], wait: bool = True) -> list[int]:
         """What the other process found added to ``found`` (up to ``most``), its points taken
-        out; the segments where nothing was found there. A segment is searched here instead
-        where the search there failed, or answered with a part this gallery does not hold (a
-        registration landed meanwhile). ``wait``: until every segment is answered; else
-        those answered so far."""
+        out; the segments where nothing was found there. ``wait``: until every segment is
+        answered, and those left searched here; else those answered so far. A segment whose
+        search there failed (a worker died), or found a part this gallery does not hold (a
+        registration landed meanwhile), goes back in turn to be searched here, and no more
+        are sent."""
         scan, entries, failed = self.scan, self.scan.query.snapshot.entries, []
-        if wait:
-            self.idle.wait()
-            while self.queue:  # left when a segment could not be sent
-                failed += scan.search(self.labels, [self.queue.popleft()], self.most, found)
-        with self.lock:
-            answered = [(s, f) for s, f in self.done if f.done()]
-            self.done = [(s, f) for s, f in self.done if not f.done()]
-        for segment, future in answered:
-            try:
-                records, missed, complete = future.result()
-            except Exception:  # a worker died: searched here
-                log.warning("a segment's search elsewhere failed; searching here", exc_info=True)
-                records = None
-            if records is None or any(r.label not in entries for r in records):
-                failed += scan.search(self.labels, [segment], self.most, found, ask_ahead=False)
+        answered = self.answered(wait)
+        if any(records is None for _, records in answered):
+            with self.lock:
+                self.broken = True  # none more sent ...
+            answered += self.answered(True)  # ... once the one there now is answered
+        for segment, records in answered:
+            if records is None:
+                self.put_back(segment)
                 continue
+            records, missed, complete = records
             scan.complete = scan.complete and complete
             failed += missed
             for record in records[: max(0, self.most - len(found))]:
                 scan.take(record.instance(entries[record.label]), found)
+        while wait and (segment := self.front()) is not None:
+            failed += scan.search(self.labels, [segment], self.most, found, ask_ahead=False)
         return failed
+
+    def answered(self, wait: bool) -> list[tuple[int, tuple | None]]:
+        """The segments answered there since last asked (all of them, with ``wait``), each
+        with what was found, or None where the search failed or found a part this gallery
+        does not hold."""
+        if wait:
+            self.idle.wait()
+        with self.lock:
+            done = [(s, f) for s, f in self.done if f.done()]
+            self.done = [(s, f) for s, f in self.done if not f.done()]
+        entries, answers = self.scan.query.snapshot.entries, []
+        for segment, future in done:
+            try:
+                records = future.result()
+            except Exception:  # a worker died
+                log.warning("a segment's search elsewhere failed; searching here", exc_info=True)
+                records = None
+            if records is not None and any(r.label not in entries for r in records[0]):
+                records = None
+            answers.append((segment, records))
+        return answers
+
+    def put_back(self, segment: int) -> None:
+        """``segment`` back in the queue, in its turn (largest first)."""
+        with self.lock:
+            later = [k for k, s in enumerate(self.queue) if self.rank[s] > self.rank[segment]]
+            self.queue.insert(later[0] if later else len(self.queue), segment)
 
 
 @dataclass
@@ -464,8 +490,9 @@ class Scan:
     min_confidence: float | None
     sizes: tuple[float, float]  # the smallest and largest scale a part here may have
     deadline: float | None = None  # time.monotonic() by which the search stops
-    # ``Engine.align`` run elsewhere (another process), answering a future: the segments'
-    # first asks are sent there at once (docs/decisions.md#detect-on-two-cores)
+    # an ``Engine`` method by name run elsewhere (another process), answering a future: the
+    # first asks sent there at once (docs/decisions.md#detect-on-two-cores), and a share of
+    # the segments searched there (``Shared``)
     submit: Callable[..., Future] | None = None
     free: np.ndarray = field(init=False)  # which points no instance has claimed yet
     complete: bool = field(init=False, default=True)  # every region was searched in time
@@ -506,8 +533,10 @@ class Scan:
             failed = self.search(labels, order, most, found)
         else:
             failed = []
-            while (segment := shared.front()) is not None:
+            while True:
                 failed += shared.gathered(found, wait=False)  # what it took is out
+                if (segment := shared.front()) is None:
+                    break
                 failed += self.search(labels, [segment], most, found, ask_ahead=False)
             failed += shared.gathered(found)
         # the failed segments' neighbours in the image: fragments, and other failed segments

@@ -479,19 +479,24 @@ def test_asks_sent_ahead_to_another_process_answer_as_those_made_here(box_and_cu
         np.testing.assert_array_equal(a.indices, b.indices)
 
 
-def test_segments_searched_in_two_processes_find_what_one_finds(box_and_cube):
-    # the box, the cube and the ball apart: three segments. With ``submit`` (here a thread of
-    # the real engine; the service's worker processes) some are searched there while the
-    # rest are searched here, and the frame holds the same instances, no point claimed twice
-    # (docs/decisions.md#segments-on-two-cores)
-    engine, meshes = box_and_cube
+def three_apart(meshes):
+    """The box, the cube and the ball apart on a table: three segments."""
     box, cube, ball = meshes["box"], meshes["cube"], meshes["ball"]
     placed = [
         (box, *resting(box, spin(10), 0.0, 0.0)),
         (cube, *resting(cube, spin(40), 0.17, 0.05)),
         (ball, *resting(ball, spin(0), -0.16, -0.04)),
     ]
-    frame = frame_of(shoot(placed, table(), distance=0.8))
+    return shoot(placed, table(), distance=0.8)
+
+
+def test_segments_searched_in_two_processes_find_what_one_finds(box_and_cube):
+    # the box, the cube and the ball apart: three segments. With ``submit`` (here a thread of
+    # the real engine; the service's worker processes) some are searched there while the
+    # rest are searched here, and the frame holds the same instances, no point claimed twice
+    # (docs/decisions.md#segments-on-two-cores)
+    engine, meshes = box_and_cube
+    frame = frame_of(three_apart(meshes))
     alone = engine.detect(frame).detections
     searched = []
 
@@ -508,6 +513,28 @@ def test_segments_searched_in_two_processes_find_what_one_finds(box_and_cube):
     assert {"box", "cube"} <= {d.answer.label for d in shared if d.answer.verdict == "match"}
     claimed = np.concatenate([d.indices for d in shared])
     assert len(np.unique(claimed)) == len(claimed)
+
+
+def test_a_segment_whose_search_elsewhere_fails_is_searched_here(box_and_cube):
+    # the other process dies while it searches (its future raises): the segments it took are
+    # searched here, and the frame holds what a search alone finds
+    engine, meshes = box_and_cube
+    frame = frame_of(three_apart(meshes))
+    alone = engine.detect(frame).detections
+    failed = []
+
+    def submit(method, *args, **kwargs):
+        if method == "align":
+            return pool.submit(getattr(engine, method), *args, **kwargs)
+        failed.append(args[5])  # the segments it was sent
+        return pool.submit(lambda: 1 / 0)
+
+    with ThreadPoolExecutor(1) as pool:
+        here = engine.detect(frame, submit=submit).detections
+    assert failed
+    assert sorted((d.answer.label, d.answer.verdict) for d in here) == sorted(
+        (d.answer.label, d.answer.verdict) for d in alone
+    )
 
 
 def test_two_touching_boxes_are_found_whatever_the_search_draws(engine):
