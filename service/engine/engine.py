@@ -865,8 +865,10 @@ class Engine:
         rest = thin.take(keep)
         labels = segments(rest, angle)  # segments
         clock.lap("segments")
+        camera, noise = DepthImage.of(thin), Noise(supports[0] if supports else None)
+        sizes = (float(scales.min()), float(scales.max()))
         scan = self._scan(
-            query, rest, thin, supports, scales, floor, min_confidence, deadline, submit
+            query, rest, camera, noise, sizes, floor, min_confidence, deadline, submit
         )
         try:
             instances = scan.instances(labels, max_instances)  # explain, take out, search again
@@ -883,7 +885,7 @@ class Engine:
         return scan.answer(frame, seen, supports, instances, clock)
 
     def _scan(
-        self, query, rest, thin, supports, scales, floor, min_confidence, deadline, submit
+        self, query, rest, camera, noise, sizes, floor, min_confidence, deadline, submit
     ) -> Scan:
         """The search of a frame's points off its supports (``service.engine.scene``)."""
         return Scan(
@@ -893,11 +895,11 @@ class Engine:
             self.scene_calibration,
             query,
             rest,
-            DepthImage.of(thin),
-            Noise(supports[0] if supports else None),
+            camera,
+            noise,
             INSTANCE_FLOOR if floor is None else floor,
             min_confidence,
-            (float(scales.min()), float(scales.max())),
+            sizes,
             deadline,
             submit,
         )
@@ -922,20 +924,7 @@ class Engine:
         nothing was, and whether every region was searched in time. ``free``: the points
         not yet taken there."""
         query = self.query(candidates, None, True, None, rest.viewpoint)
-        scan = Scan(
-            self.align,
-            self.seen_as,
-            self.settings.tolerance,
-            self.scene_calibration,
-            query,
-            rest,
-            camera,
-            noise,
-            floor,
-            min_confidence,
-            sizes,
-            deadline,
-        )
+        scan = self._scan(query, rest, camera, noise, sizes, floor, min_confidence, deadline, None)
         scan.free = free
         found: list = []
         failed = scan.search(labels, order, most, found, ask_ahead=False)

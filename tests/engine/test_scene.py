@@ -31,7 +31,7 @@ from service.engine.scene import (
     settle_claims,
 )
 from service.engine.segments import segments
-from service.engine.supports import set_aside_supports
+from service.engine.supports import Noise, set_aside_supports
 from service.engine.tuning import (
     CLAIM_TOLERANCE,
     MIN_SEGMENT,
@@ -490,6 +490,11 @@ def three_apart(meshes):
     return shoot(placed, table(), distance=0.8)
 
 
+def outcomes(detections) -> list[tuple[str, str]]:
+    """Each detection's label and verdict, sorted."""
+    return sorted((d.answer.label, d.answer.verdict) for d in detections)
+
+
 def test_segments_searched_in_two_processes_find_what_one_finds(box_and_cube):
     # the box, the cube and the ball apart: three segments. With ``submit`` (here a thread of
     # the real engine; the service's worker processes) some are searched there while the
@@ -507,9 +512,7 @@ def test_segments_searched_in_two_processes_find_what_one_finds(box_and_cube):
     with ThreadPoolExecutor(1) as pool:
         shared = engine.detect(frame, submit=submit).detections
     assert "search_segments" in searched, searched
-    assert sorted((d.answer.label, d.answer.verdict) for d in shared) == sorted(
-        (d.answer.label, d.answer.verdict) for d in alone
-    )
+    assert outcomes(shared) == outcomes(alone)
     assert {"box", "cube"} <= {d.answer.label for d in shared if d.answer.verdict == "match"}
     claimed = np.concatenate([d.indices for d in shared])
     assert len(np.unique(claimed)) == len(claimed)
@@ -532,9 +535,7 @@ def test_a_segment_whose_search_elsewhere_fails_is_searched_here(box_and_cube):
     with ThreadPoolExecutor(1) as pool:
         here = engine.detect(frame, submit=submit).detections
     assert failed
-    assert sorted((d.answer.label, d.answer.verdict) for d in here) == sorted(
-        (d.answer.label, d.answer.verdict) for d in alone
-    )
+    assert outcomes(here) == outcomes(alone)
 
 
 def test_two_touching_boxes_are_found_whatever_the_search_draws(engine):
@@ -606,7 +607,9 @@ def frame_scan(engine: Engine, frame: Frame):
     thin = frame.thinned(scales.min() / THIN_PER_SCALE)
     keep, supports = set_aside_supports(thin, frame.pixel_angle(), scales, query.rng)
     rest = thin.take(keep)
-    scan = engine._scan(query, rest, thin, supports, scales, None, None, None, None)
+    noise = Noise(supports[0] if supports else None)
+    sizes = (float(scales.min()), float(scales.max()))
+    scan = engine._scan(query, rest, DepthImage.of(thin), noise, sizes, None, None, None, None)
     return scan, segments(rest, frame.pixel_angle()), rest
 
 
