@@ -381,12 +381,13 @@ def largest_plane(
     offsets = np.einsum("ij,ij->i", normals, triples[good, 0])
     # each point's vote falls off with its distance (MSAC): a plane tilted through two levels
     # (a bin's floor 1 cm over the table) holds both within the tolerance, but loosely
-    # 1 - (|n . p - d| / slack)^2, at least 0: in place on one (sample, planes) array, the
-    # same floats as the expression written out, in a quarter of its time
-    near = sample @ normals.T
-    near -= offsets
+    # 1 - (|n . p - d| / slack)^2, at least 0: in place on one (sample, planes) array, in
+    # float32 (half the memory streamed; the same plane chosen every time measured:
+    # docs/decisions.md#supports-on-a-coarser-copy)
+    near = sample.astype(np.float32) @ normals.T.astype(np.float32)
+    near -= offsets.astype(np.float32)
     np.abs(near, out=near)
-    near /= slack[:, None]
+    near /= slack.astype(np.float32)[:, None]
     np.square(near, out=near)
     np.subtract(1, near, out=near)
     votes = np.maximum(near, 0, out=near).sum(axis=0)
