@@ -927,7 +927,7 @@ class Engine:
         scan = self._scan(query, rest, camera, noise, sizes, floor, min_confidence, deadline, None)
         scan.free = free
         found: list = []
-        failed = scan.search(labels, order, most, found, ask_ahead=False)
+        failed = scan.search(labels, order, most, found)  # no ``submit``: nothing asked ahead
         return [Found.of(instance) for instance in found], failed, scan.complete
 
     def _found_again(

@@ -392,7 +392,7 @@ class Shared:
             segment = self.queue.pop()
             self.idle.clear()
             scan = self.scan
-            candidates, _kwargs = scan.asking(0.0)
+            candidates = scan.asking(0.0)[0] if scan.told else None
             try:
                 future = scan.submit(
                     "search_segments",
@@ -403,7 +403,7 @@ class Shared:
                     self.labels,
                     [segment],
                     scan.free.copy(),  # what this one took so far is out there too
-                    candidates if scan.told else None,
+                    candidates,
                     scan.floor,
                     scan.min_confidence,
                     scan.deadline,
