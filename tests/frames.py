@@ -62,6 +62,31 @@ class Shot:
         return buffer.getvalue()
 
 
+def without(shot: Shot, missing: np.ndarray) -> Shot:
+    """The shot with no point on the ``missing`` pixels (H, W), as an interlaced camera or a
+    pattern of dropouts gives it."""
+    points = shot.points.copy()
+    points[missing] = np.nan
+    return Shot(points, np.where(missing, -1, shot.shows), shot.poses, shot.camera)
+
+
+def registered(shot: Shot, scale: float) -> Shot:
+    """The shot as a depth image registered to a colour image ``scale`` times its size gives
+    it, unfilled (ROS's ``depth_image_proc`` by default): each pixel's point on the pixel its
+    ray lands on there, no point on the others (about one pixel in ``scale`` squared has one,
+    in a pattern that drifts across the image)."""
+    height, width = shot.shows.shape
+    tall, wide = int(np.ceil(height * scale)) + 1, int(np.ceil(width * scale)) + 1
+    rows, columns = np.mgrid[0:height, 0:width]
+    rows = np.floor(rows * scale + 0.5).astype(int)
+    columns = np.floor(columns * scale + 0.5).astype(int)
+    points = np.full((tall, wide, 3), np.nan, dtype=np.float32)
+    points[rows, columns] = shot.points
+    shows = np.full((tall, wide), -1)
+    shows[rows, columns] = shot.shows
+    return Shot(points, shows, shot.poses, (wide, tall, shot.camera[2] * scale))
+
+
 def frame_of(shot: Shot) -> Frame:
     """The engine's view of a shot, as POST /detect makes it from its organized PCD."""
     cloud = organized(shot.points, shot.shows.size, "frame")

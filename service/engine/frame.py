@@ -5,7 +5,10 @@ An organized frame (a depth image, a PCD or NPY of height > 1) keeps its grid: a
 ``index`` is its pixel, ``row * width + col``, and its neighbours in the image are its
 neighbours on the surface unless the depth jumps. A frame far denser than the decisions need
 is thinned at once (``thinned``): every k-th row and column of an organized frame, one point a
-voxel of any other, so that a camera's resolution costs little.
+voxel of any other, so that a camera's resolution costs little. A frame whose pixels are
+missing in a pattern (a depth image registered to a larger colour image, an interlaced camera)
+keeps a point in every block it thins to, and one with a point on one pixel in four or fewer is
+thinned to its own density (docs/decisions.md#pixels-missing-in-a-pattern).
 """
 
 from __future__ import annotations
@@ -17,7 +20,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.engine.normalize import distances, lengths, subsample
-from service.engine.tuning import PIXEL_PAIRS
+from service.engine.tuning import (
+    BLOCKS_HELD,
+    DIRECT_PAIRS,
+    PIXEL_PAIRS,
+    SPARSE_GAP,
+    SPARSE_SAMPLE,
+    SPARSE_WINDOW,
+)
 
 
 @dataclass(frozen=True)
@@ -90,11 +100,22 @@ class Frame:
         if np.any(index[1:] < index[:-1]):  # a frame's points come in pixel order: no sort
             order = np.argsort(index)
             index, points = index[order], points[order]
-        # every k-th point with the next, some PIXEL_PAIRS pairs spread over the grid: all
-        # pairs' median to 0.1 %, 5 ms where all took 27-170 ms on 1280 x 720
-        # (docs/decisions.md#a-frames-body)
-        first = np.arange(0, len(index) - 1, max(1, (len(index) - 1) // PIXEL_PAIRS))
-        first = first[np.take(index, first + 1) - np.take(index, first) == self.step]
+        apart = None
+        if not self.patterned:
+            # every k-th point with the next, some PIXEL_PAIRS pairs spread over the grid: all
+            # pairs' median to 0.1 %, 5 ms where all took 27-170 ms on 1280 x 720
+            # (docs/decisions.md#a-frames-body)
+            first = np.arange(0, len(index) - 1, max(1, (len(index) - 1) // PIXEL_PAIRS))
+            first = first[np.take(index, first + 1) - np.take(index, first) == self.step]
+        else:  # the next point along its row, a few pixels on, drawn at random: a pattern's
+            # gaps (2, 1, 2, 1) alias with a fixed stride
+            pairs = min(PIXEL_PAIRS, len(index) - 1)
+            first = np.sort(np.random.default_rng(0).choice(len(index) - 1, pairs, replace=False))
+            gap = np.take(index, first + 1) - np.take(index, first)
+            width = self.shape[1]
+            near = (gap % self.step == 0) & (gap <= SPARSE_GAP * self.step)
+            near &= np.take(index, first + 1) // width == np.take(index, first) // width
+            first, apart = first[near], gap[near] / self.step
         if len(first) < 16:
             return spacing_angle(self.points, self.viewpoint)
         ends = []
@@ -103,7 +124,25 @@ class Frame:
             rays /= lengths(rays)[:, None]  # each ray's length: its range
             ends.append(rays)
         cosine = np.einsum("ij,ij->i", *ends)
-        return float(np.median(np.arccos(np.clip(cosine, -1.0, 1.0)))) / self.step
+        angles = np.arccos(np.clip(cosine, -1.0, 1.0))
+        if apart is None:
+            return float(np.median(angles)) / self.step
+        # a ray's angle does not depend on the depth: no outliers, and the gaps of a pattern
+        # (2, 1, 2, 1 on a grid 1.5 times the camera's) average out
+        return float(angles.sum() / apart.sum()) / self.step
+
+    @cached_property
+    def patterned(self) -> bool:
+        """Whether the organized frame's pixels are missing in a pattern: fewer than
+        ``DIRECT_PAIRS`` of a sample of its points have one on the next pixel of their row
+        (a depth image registered to a larger colour image, an interlaced camera, a
+        checkerboard of dropouts; docs/decisions.md#pixels-missing-in-a-pattern)."""
+        if self.shape is None or len(self) < 2:
+            return False
+        index = self._sorted_index
+        first = np.arange(0, len(index) - 1, max(1, (len(index) - 1) // PIXEL_PAIRS))
+        gap = np.take(index, first + 1) - np.take(index, first)
+        return bool(np.count_nonzero(gap == self.step) < DIRECT_PAIRS * len(gap))
 
     def thinned(self, voxel: float) -> Frame:
         """At most about one point per ``voxel``: every k-th row and column of an organized
@@ -113,20 +152,79 @@ class Frame:
             return self
         if self.shape is not None:
             footprint = self.pixel_angle() * float(np.median(self.ranges()))
-            return self.every(int(voxel // max(footprint, 1e-12)))
+            return self.every(max(int(voxel // max(footprint, 1e-12)), self.sparse_step()))
         cells = np.floor(self.points / voxel).astype(np.int64)
         _, first = np.unique(cells, axis=0, return_index=True)
         return self.take(np.sort(first))
 
     def every(self, step: int) -> Frame:
-        """Every ``step``-th row and column of an organized frame's grid (itself for 1)."""
+        """Every ``step``-th row and column of an organized frame's grid (itself for 1): the
+        first pixel of each block of ``step`` x ``step``; where pixels are missing in a
+        pattern, so that many blocks' first has no point, the first pixel each has a point on
+        (docs/decisions.md#pixels-missing-in-a-pattern)."""
         if step <= 1:
             return self
         stride = self.step * step
-        grid = np.zeros(self.shape, dtype=bool)  # the kept pixels, looked up: no // or % a point
-        grid[::stride, ::stride] = True
+        if self._firsts_held(stride) >= BLOCKS_HELD:
+            grid = np.zeros(self.shape, dtype=bool)  # looked up: no // or % a point
+            grid[::stride, ::stride] = True
+        else:
+            valid = np.zeros(self.shape, dtype=bool)
+            valid.ravel()[self.index] = True
+            grid = _first_of_blocks(valid, stride)
         thin = self.take(np.take(grid.ravel(), self.index))
         return Frame(thin.points, thin.index, self.shape, self.viewpoint, stride)
+
+    def _firsts_held(self, stride: int) -> float:
+        """Of a sample of the frame's points, the share whose block (``stride`` wide) has a
+        point on its first pixel."""
+        index = self._sorted_index
+        chosen = index[:: max(1, len(index) // SPARSE_SAMPLE)]
+        rows, columns = np.divmod(chosen, self.shape[1])
+        firsts = (rows - rows % stride) * self.shape[1] + columns - columns % stride
+        at = np.minimum(np.searchsorted(index, firsts), len(index) - 1)
+        return float(np.mean(index[at] == firsts)) if len(chosen) else 1.0
+
+    @cached_property
+    def _sorted_index(self) -> np.ndarray:
+        """The points' pixels in order (a frame's come so: no sort)."""
+        index = self.index
+        return index if not np.any(index[1:] < index[:-1]) else np.sort(index)
+
+    def sparse_step(self) -> int:
+        """The stride of the grid on which an organized frame's points lie about as densely
+        as a camera's pixels: 1, unless its pixels are missing in a pattern and a point lies
+        on one pixel in four or fewer (a depth image registered to a colour image twice its
+        size). From the median share of pixels with a point in windows put anywhere on the
+        rows the frame's points span (those holding one)."""
+        return self._sparse_step
+
+    @cached_property
+    def _sparse_step(self) -> int:
+        if self.shape is None or len(self) < 16 or self.step > 1 or not self.patterned:
+            return 1
+        height, width = self.shape
+        valid = np.zeros(height * width, dtype=bool)
+        valid[self.index] = True
+        low = int(self._sorted_index[0]) // width  # the rows the points span
+        high = int(self._sorted_index[-1]) // width - SPARSE_WINDOW + 1
+        if high <= low or width < SPARSE_WINDOW:
+            return 1
+        # anywhere, not about a point: in a regular pattern (a point every 2.1 pixels) a
+        # window about one holds more than its share
+        rng = np.random.default_rng(0)
+        corners = rng.integers(low, high, SPARSE_SAMPLE) * width
+        corners += rng.integers(0, width - SPARSE_WINDOW + 1, SPARSE_SAMPLE)
+        offsets = np.arange(SPARSE_WINDOW)
+        around = (offsets[:, None] * width + offsets[None, :]).ravel()
+        shares = np.take(valid, corners[:, None] + around).mean(axis=1)
+        shares = shares[shares > 0]  # windows on the frame's parts, not where it saw nothing
+        if len(shares) < 16:
+            return 1
+        # the median window: those astride a part's outline or the frame's edge count less
+        density = float(np.median(shares))
+        # a point on about one pixel in s x s: stride s (a gap of one is linked across)
+        return max(1, int(1.0 / np.sqrt(density) + 0.1))
 
     def at_most(self, count: int, rng: np.random.Generator) -> Frame:
         """A coarser copy of about ``count`` points at most: every k-th row and column of an
@@ -158,3 +256,20 @@ def spacing_angle(points: np.ndarray, viewpoint: np.ndarray, sample: int = 512) 
     distance, _ = cKDTree(points).query(chosen, k=2)
     ranges = np.linalg.norm(chosen - viewpoint, axis=1)
     return float(np.median(distance[:, 1] / np.maximum(ranges, 1e-12)))
+
+
+def _first_of_blocks(valid: np.ndarray, stride: int) -> np.ndarray:
+    """(height, width) the first pixel, row by row, with a point (``valid``) of each block of
+    ``stride`` x ``stride`` pixels that has one."""
+    height, width = valid.shape
+    tall, wide = -(-height // stride) * stride, -(-width // stride) * stride
+    padded = np.zeros((tall, wide), dtype=bool)
+    padded[:height, :width] = valid
+    blocks = padded.reshape(tall // stride, stride, wide // stride, stride).swapaxes(1, 2)
+    blocks = blocks.reshape(-1, stride * stride)
+    held = np.flatnonzero(blocks.any(axis=1))
+    pick = np.argmax(blocks[held], axis=1)  # the first True
+    block_row, block_column = np.divmod(held, wide // stride)
+    grid = np.zeros((tall, wide), dtype=bool)
+    grid[block_row * stride + pick // stride, block_column * stride + pick % stride] = True
+    return grid[:height, :width]
