@@ -22,15 +22,22 @@ class Cloud:
 
 
 def organized(grid: np.ndarray, max_points: int, what: str) -> Cloud:
-    """The valid pixels of an (H, W, 3) grid of points, counted against ``max_points``."""
+    """The valid pixels of an (H, W, 3) grid of points, counted against ``max_points``: a
+    pixel whose point is NaN, infinite or exactly (0, 0, 0) has none. A camera measures no
+    point at its own centre; RealSense's SDK, and drivers after it, write a pixel without a
+    depth so (docs/decisions.md#a-pixel-at-the-cameras-centre)."""
     height, width = grid.shape[:2]
     flat = grid.reshape(-1, 3)
-    finite = np.isfinite(flat)  # column by column: .all(axis=1) over rows of 3 is 8x slower
-    valid = np.flatnonzero(finite[:, 0] & finite[:, 1] & finite[:, 2])
+    # column by column: .all(axis=1) over rows of 3 is 8x slower
+    x, y, z = flat[:, 0], flat[:, 1], flat[:, 2]
+    kept = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+    kept &= (x != 0) | (y != 0) | (z != 0)
+    valid = np.flatnonzero(kept)
     if not len(valid):
         raise InvalidPoints(
-            f"the {what} ({width}x{height} pixels) has no valid point: every pixel is NaN or "
-            "infinite, where its camera saw nothing; check that the camera sees the scene"
+            f"the {what} ({width}x{height} pixels) has no valid point: every pixel is NaN, "
+            "infinite or (0, 0, 0), where its camera saw nothing; check that the camera sees "
+            "the scene"
         )
     if len(valid) > max_points:
         raise InvalidPoints(

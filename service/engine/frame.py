@@ -124,6 +124,12 @@ class Frame:
             rays /= lengths(rays)[:, None]  # each ray's length: its range
             ends.append(rays)
         cosine = np.einsum("ij,ij->i", *ends)
+        finite = np.isfinite(cosine)  # a point at the camera itself has no ray
+        if not finite.all():
+            cosine = cosine[finite]
+            apart = None if apart is None else apart[finite]
+            if len(cosine) < 16:
+                return spacing_angle(self.points, self.viewpoint)
         angles = np.arccos(np.clip(cosine, -1.0, 1.0))
         if apart is None:
             return float(np.median(angles)) / self.step

@@ -3,6 +3,8 @@ boxes and ducks on a table and in a bin, as a camera's driver writes them."""
 
 from __future__ import annotations
 
+import io
+
 import numpy as np
 import pytest
 import trimesh
@@ -146,6 +148,22 @@ def test_a_depth_image_registered_to_a_larger_colour_image_is_searched(server, m
     assert np.linalg.norm(np.subtract(found["translation"], shot.poses[0][1])) < 0.01
     assert body["supports"], "the table is set aside"
     assert body["num_points"] == int(np.isfinite(shot.points[..., 0]).sum())
+
+
+def test_pixels_without_depth_written_as_zeros_are_skipped(server, meshes):
+    """A frame's vertices as RealSense's SDK gives them, saved as NPY: (0, 0, 0) where there
+    is no depth. Such a frame was a 500 (its pixel angle NaN)."""
+    a = resting(meshes["box-a"], spin(20), 0.0, 0.0)
+    shot = shoot([(meshes["box-a"], *a)], table(), elevation_deg=45, distance=1.2)
+    buffer = io.BytesIO()
+    np.save(buffer, np.nan_to_num(shot.points, nan=0.0))
+    answer = server.client.post(
+        "/detect", files={"file": ("frame.npy", buffer.getvalue())}, timeout=300.0
+    )
+    assert answer.status_code == 200, answer.text
+    body = answer.json()
+    assert body["num_points"] == int(np.isfinite(shot.points[..., 0]).sum())
+    assert [d["label"] for d in body["detections"] if d["verdict"] == "match"] == ["box-a"]
 
 
 def test_a_frame_of_2048_by_1536_pixels_is_accepted(server, meshes):

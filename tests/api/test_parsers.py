@@ -134,6 +134,20 @@ def test_a_pixel_with_any_coordinate_missing_is_dropped():
     np.testing.assert_array_equal(cloud.points, grid.reshape(-1, 3)[cloud.index])
 
 
+def test_a_pixel_at_the_cameras_centre_is_one_without_depth():
+    """RealSense's SDK writes a pixel without depth as the point (0, 0, 0): it is skipped as a
+    NaN one is; a point with one or two coordinates 0 is kept."""
+    grid = np.arange(1, 4 * 5 * 3 + 1, dtype=np.float32).reshape(4, 5, 3)
+    grid[0, 1] = 0.0
+    grid[2, 3] = [0.0, 0.0, 0.5]
+    grid[3, 4] = [0.0, 0.2, 0.0]
+    cloud = organized(grid, 100, "frame")
+    np.testing.assert_array_equal(cloud.index, [i for i in range(20) if i != 1])
+    saying = r"the NPY frame \(5x4 pixels\) has no valid point: every pixel is NaN, infinite or \(0"
+    with pytest.raises(InvalidPoints, match=saying):
+        read_points(npy(np.zeros((4, 5, 3), np.float32)), "frame.npy", COUNT, MAX_POINTS)
+
+
 def test_a_frame_without_a_valid_pixel_says_so():
     """A camera that saw nothing writes a frame of NaN pixels: the answer names the frame and
     its pixels, not an empty list of triples."""
