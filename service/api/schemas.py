@@ -230,7 +230,9 @@ class DetectResponse(BaseModel):
         True, description="every region of the frame was searched within the time budget"
     )
     reasons: list[str] = Field(
-        default_factory=list, description="why the search is incomplete, and what to change"
+        default_factory=list,
+        description="why the search is incomplete, or why no registered part could be found "
+        "in the frame (its unit), and what to change",
     )
 
 

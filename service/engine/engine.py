@@ -66,6 +66,7 @@ from service.engine.tuning import (
     KEEP_SHARE,
     LINE,
     MAX_ALTERNATIVES,
+    MIN_SEGMENT,
     MORE_VIEWS_BELOW,
     PER_PART,
     POOR_FIT,
@@ -76,7 +77,13 @@ from service.engine.tuning import (
     WHOLE_REFINED,
     WHOLE_SCREENED,
 )
-from service.engine.units import UNIT_FACTORS, nearest_sized, size_reason, unit_ratio
+from service.engine.units import (
+    UNIT_FACTORS,
+    frame_scale_reason,
+    nearest_sized,
+    size_reason,
+    unit_ratio,
+)
 from service.engine.views import (
     camera_at,
     directions,
@@ -860,6 +867,9 @@ class Engine:
         thin = frame.thinned(scales.min() / THIN_PER_SCALE)  # thin
         angle = frame.pixel_angle()
         clock.lap("thin")
+        unit = frame_scale_reason(thin.ranges(), angle, float(scales.max()), MIN_SEGMENT)
+        if unit is not None:  # no part could be seen: a frame in millimetres, say
+            return SceneAnswer([], len(frame), len(frame), [], clock.total(), True, [unit])
         keep, supports = set_aside_supports(thin, angle, scales, query.rng)
         clock.lap("supports")
         rest = thin.take(keep)

@@ -50,6 +50,46 @@ def unit_ratio(factor: float) -> tuple[float, str, str] | None:
     return None
 
 
+# --- the unit of a whole frame ---------------------------------------------------------------
+
+NEAR_SHARE = 10  # percent: a frame's nearest points, where its parts lie before the background
+CAMERA_RANGE = (0.1, 10.0)  # metres from a depth camera to what it sees
+TYPICAL_RANGE = 1.0  # metres: of two units that both fit, the one nearer this is named
+FRAME_UNITS = (("millimetres", 1000.0), ("centimetres", 100.0))  # units a camera's frame is in
+
+
+def frame_scale_reason(ranges: np.ndarray, angle: float, largest: float, least: int) -> str | None:
+    """Why no registered part can be found in a frame whose points lie at ``ranges`` from its
+    camera (in the references' unit, metres), ``angle`` between neighbouring pixels: at its
+    nearest points the largest part (radius ``largest``) would cover fewer than ``least``
+    pixels, the fewest a part is searched on. Names the unit the frame is likely in: one that
+    brings its nearest points into a camera's range with the part covering enough pixels, the
+    nearest a metre away of those (docs/decisions.md#a-frame-in-millimetres). None where a
+    part could be found."""
+    sample = ranges[:: max(1, len(ranges) // 4096)]
+    near = float(np.percentile(sample, NEAR_SHARE)) if len(sample) else 0.0
+    radius = largest / max(near * angle, np.finfo(float).tiny)  # in pixels
+    covered = np.pi * radius**2
+    if covered >= least:
+        return None
+    said = (
+        f"the frame's nearest points are {near:,.3g} from its camera, read in metres as the "
+        f"references are: there the largest registered part would cover {covered:.2g} pixels, "
+        f"fewer than the {least} a part is searched on"
+    )
+    low, high = CAMERA_RANGE  # a unit where the frame lies in a camera's range, the part seen
+    units = [
+        (abs(np.log(near / factor / TYPICAL_RANGE)), unit)
+        for unit, factor in FRAME_UNITS
+        if low <= near / factor <= high and covered * factor**2 >= least
+    ]
+    depth = "a depth image: set its depth_scale, the metres a unit of its pixels is"
+    if not units:
+        return f"{said}; check the frame's unit ({depth}), or bring the camera nearer"
+    _, unit = min(units)  # the one that puts the camera nearest a cell's metre
+    return f"{said}: the frame is probably in {unit}; send it in metres ({depth})"
+
+
 # --- the units a part is registered in --------------------------------------------------------
 
 UNITS = {"m": 1.0, "mm": 0.001, "cm": 0.01, "in": 0.0254}  # metres a unit

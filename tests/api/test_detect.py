@@ -166,6 +166,22 @@ def test_pixels_without_depth_written_as_zeros_are_skipped(server, meshes):
     assert [d["label"] for d in body["detections"] if d["verdict"] == "match"] == ["box-a"]
 
 
+def test_a_frame_in_millimetres_says_so(server, meshes):
+    """A camera that writes its frames in millimetres (as many industrial ones do), with
+    the references in metres: the same empty list as a frame holding no part, before."""
+    a = resting(meshes["box-a"], spin(20), 0.0, 0.0)
+    shot = shoot([(meshes["box-a"], *a)], table())
+    buffer = io.BytesIO()
+    np.save(buffer, shot.points * 1000)
+    answer = server.client.post(
+        "/detect", files={"file": ("frame.npy", buffer.getvalue())}, timeout=300.0
+    )
+    assert answer.status_code == 200, answer.text
+    body = answer.json()
+    assert body["detections"] == []
+    assert len(body["reasons"]) == 1 and "probably in millimetres" in body["reasons"][0]
+
+
 def test_a_frame_of_2048_by_1536_pixels_is_accepted(server, meshes):
     a = resting(meshes["box-a"], spin(10), -0.1, 0.0)
     b = resting(meshes["box-b"], spin(-30), 0.12, 0.05)
