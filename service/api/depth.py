@@ -24,6 +24,8 @@ from service.errors import InvalidPoints
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
 MAX_PIXELS = 4096 * 4096  # before decoding: a small PNG can announce billions of pixels
 MILLIMETRES = 0.001  # the default depth_scale of a 16-bit image
+MIN_FOCAL = 10.0  # pixels: no depth camera's focal length is shorter
+FAR_CENTRE = 10  # images: a principal point farther than this from the image's is a mistake
 
 
 def depth_points(
@@ -38,6 +40,7 @@ def depth_cloud(
 ) -> Cloud:
     """The points of the pixels with a depth (and in the mask), in the camera's frame, with
     each one's pixel in the image's grid."""
+    check_intrinsics(camera, depth.shape)
     scale = camera.depth_scale or (MILLIMETRES if depth.dtype.kind in "iu" else 1.0)
     z = depth.astype(np.float64) * scale
     valid = np.isfinite(z) & (z > 0)
@@ -67,6 +70,26 @@ def depth_cloud(
     y = (rows - camera.cy) * z / camera.fy
     index = rows.astype(np.int64) * depth.shape[1] + columns
     return Cloud(np.stack([x, y, z], axis=1), index, (depth.shape[0], depth.shape[1]))
+
+
+def check_intrinsics(camera: DepthCamera, shape: tuple[int, int]) -> None:
+    """Intrinsics in pixels of an image of ``shape`` (height, width), or a 422 naming which
+    is not: a focal length under ``MIN_FOCAL`` pixels (intrinsics normalized by the image's
+    size give about 1), or a principal point ``FAR_CENTRE`` images away from the image's."""
+    height, width = shape
+    for name, focal in (("fx", camera.fx), ("fy", camera.fy)):
+        if focal < MIN_FOCAL:
+            raise InvalidPoints(
+                f"{name} = {focal:g} is no focal length in pixels (a depth camera's is some "
+                "hundreds): intrinsics divided by the image's size? send fx, fy, cx and cy in "
+                "pixels"
+            )
+    for name, centre, size in (("cx", camera.cx, width), ("cy", camera.cy, height)):
+        if abs(centre - size / 2) > FAR_CENTRE * max(width, height):
+            raise InvalidPoints(
+                f"{name} = {centre:g} lies far outside the {width}x{height} image: send the "
+                f"principal point in pixels (near {size / 2:g})"
+            )
 
 
 def read_image(data: bytes, filename: str | None, what: str) -> np.ndarray:

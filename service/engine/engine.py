@@ -39,7 +39,7 @@ from service.engine.confidence import Calibration
 from service.engine.distance_field import DistanceField
 from service.engine.entry import Entry, Snapshot, stored_surface
 from service.engine.fits import Fit
-from service.engine.frame import Frame
+from service.engine.frame import Frame, cropped_reason
 from service.engine.grid import grid
 from service.engine.icp import Surface
 from service.engine.look_alikes import doubt, relation
@@ -862,7 +862,12 @@ class Engine:
         future (``Scan.ask_ahead``, ``scene.Shared``)."""
         query = self.query(candidates, None, True, None, frame.viewpoint)
         clock = Stopwatch()
-        frame = frame if roi is None else frame.cropped(*roi)
+        if roi is not None:
+            inside = frame.cropped(*roi)
+            if len(inside) < MIN_SEGMENT:  # nothing to search: say where the frame is
+                reason = cropped_reason(frame.points, roi, len(inside), MIN_SEGMENT)
+                return SceneAnswer([], len(inside), len(inside), [], clock.total(), True, [reason])
+            frame = inside
         scales = self._frame_scales(query, frame)
         thin = frame.thinned(scales.min() / THIN_PER_SCALE)  # thin
         angle = frame.pixel_angle()

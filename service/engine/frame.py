@@ -253,6 +253,21 @@ class Frame:
         return ranges
 
 
+def cropped_reason(
+    points: np.ndarray, roi: tuple[np.ndarray, np.ndarray], inside: int, least: int
+) -> str:
+    """Why a frame cropped to ``roi`` (low, high corners) is not searched: ``inside`` of its
+    ``points`` lie in it, fewer than ``least``; where the points lie instead."""
+    low, high = points.min(axis=0), points.max(axis=0)
+    box = ", ".join(f"{a:.4g}..{b:.4g}" for a, b in zip(*roi, strict=True))
+    span = ", ".join(f"{a:.3g}..{b:.3g}" for a, b in zip(low, high, strict=True))
+    return (
+        f"the region of interest (x, y, z: {box}) holds {inside} of the frame's {len(points)} "
+        f"points, fewer than the {least} a part is searched on; the frame's points lie within "
+        f"{span}, in the frame's own coordinates (the camera's, for a depth image)"
+    )
+
+
 def spacing_angle(points: np.ndarray, viewpoint: np.ndarray, sample: int = 512) -> float:
     """The median angle, seen from ``viewpoint``, between a point and its nearest neighbour."""
     if len(points) < 2:

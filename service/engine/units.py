@@ -68,7 +68,9 @@ def frame_scale_reason(ranges: np.ndarray, angle: float, largest: float, least: 
     part could be found."""
     sample = ranges[:: max(1, len(ranges) // 4096)]
     near = float(np.percentile(sample, NEAR_SHARE)) if len(sample) else 0.0
-    radius = largest / max(near * angle, np.finfo(float).tiny)  # in pixels
+    if near <= 0 or angle <= 0:
+        return None
+    radius = largest / (near * angle)  # in pixels
     covered = np.pi * radius**2
     if covered >= least:
         return None

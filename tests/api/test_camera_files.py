@@ -201,6 +201,12 @@ def damaged(depth: np.ndarray) -> list[tuple[dict, dict, str]]:
         ({"file": ("a.png", png)}, {}, "intrinsics"),
         ({"file": ("a.png", png)}, {**INTRINSICS, "fx": "-3"}, "fx"),
         ({"file": ("a.png", png)}, {**INTRINSICS, "cy": "nan"}, "cy"),
+        (  # intrinsics divided by the image's size, as some libraries give them
+            {"file": ("a.png", png)},
+            {"fx": "0.9", "fy": "1.2", "cx": "0.5", "cy": "0.5"},
+            "fx = 0.9 is no focal length in pixels",
+        ),
+        ({"file": ("a.png", png)}, {**INTRINSICS, "cx": "1e9"}, "cx = 1e+09 lies far outside"),
         ({"file": ("a.png", png), "mask": ("m.png", eight_bit[:40])}, INTRINSICS, "mask"),
         (
             {

@@ -204,6 +204,11 @@ def test_the_region_of_interest_is_all_that_is_searched(server, meshes):
     inside = np.all((points >= low) & (points <= high), axis=1)
     assert body["num_points"] == int(inside.sum())
     assert inside[np.asarray(body["detections"][0]["indices"])].all()
+    # a box beside the frame (in millimetres, say): nothing to search, and where the points are
+    body = detect(server, shot, roi=",".join(f"{v:.4f}" for v in (*low * 1000, *high * 1000)))
+    assert body["detections"] == [] and body["num_points"] < 60
+    (said,) = body["reasons"]
+    assert "the region of interest" in said and "the frame's points lie within" in said
 
 
 @pytest.mark.parametrize(
