@@ -110,6 +110,19 @@ def file_kind(data: bytes, filename: str | None) -> str:
     )
 
 
+def shape_hint(array: np.ndarray) -> str:
+    """What to send instead of an array of the shape of two common layouts: more channels
+    than x, y, z (XYZRGB, XYZW), or its channels first."""
+    if array.ndim in (2, 3) and array.shape[0] == 3:
+        return ": its channels come first; send np.moveaxis(array, 0, -1)"
+    if array.ndim in (2, 3) and array.shape[-1] > 3:
+        return (
+            f": if its first three of {array.shape[-1]} channels are x, y and z (XYZRGB, "
+            "XYZW), send array[..., :3]"
+        )
+    return ""
+
+
 def read_npy(data: bytes, max_points: int) -> Cloud:
     """An .npy array of shape (N, 3), numbers, or an organized frame of shape (H, W, 3) whose
     missing pixels are NaN or infinity; never unpickles."""
@@ -130,7 +143,9 @@ def read_npy(data: bytes, max_points: int) -> Cloud:
     if not isinstance(array, np.ndarray):
         raise InvalidPoints("the NPY file holds no array")
     if array.ndim not in (2, 3) or array.shape[-1] != 3:
-        raise InvalidPoints(f"the NPY array has shape {array.shape}, not (N, 3) or (H, W, 3)")
+        raise InvalidPoints(
+            f"the NPY array has shape {array.shape}, not (N, 3) or (H, W, 3)" + shape_hint(array)
+        )
     if array.dtype.kind not in "iuf":
         raise InvalidPoints(f"the NPY array holds {array.dtype}, not numbers")
     if array.ndim == 3:

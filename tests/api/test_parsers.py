@@ -5,6 +5,7 @@ test_camera_files, since Open3D is not a runtime dependency); the bad ones are g
 damaged."""
 
 import io
+import re
 
 import numpy as np
 import pytest
@@ -146,6 +147,21 @@ def test_a_pixel_at_the_cameras_centre_is_one_without_depth():
     saying = r"the NPY frame \(5x4 pixels\) has no valid point: every pixel is NaN, infinite or \(0"
     with pytest.raises(InvalidPoints, match=saying):
         read_points(npy(np.zeros((4, 5, 3), np.float32)), "frame.npy", COUNT, MAX_POINTS)
+
+
+@pytest.mark.parametrize(
+    "shape, says",
+    [
+        ((4, 5, 6), "first three of 6 channels are x, y and z (XYZRGB, XYZW), send array[..., :3]"),
+        ((40, 4), "send array[..., :3]"),
+        ((3, 4, 5), "its channels come first; send np.moveaxis(array, 0, -1)"),
+        ((3, 40), "np.moveaxis"),
+    ],
+)
+def test_an_npy_of_another_layout_says_what_to_send(shape, says):
+    array = np.random.default_rng(0).normal(size=shape).astype(np.float32)
+    with pytest.raises(InvalidPoints, match=re.escape(says)):
+        read_points(npy(array), "frame.npy", COUNT, MAX_POINTS)
 
 
 def test_a_frame_without_a_valid_pixel_says_so():
