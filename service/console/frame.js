@@ -105,7 +105,8 @@ export function claims(frame, detections) {
 }
 
 // At most MAX_DRAWN of the frame's points, the claimed ones all kept up to half of them:
-// of an organized frame every s-th pixel of every s-th row, else evenly in the file's order.
+// of an organized frame the first point of each s x s block of pixels (every s-th pixel of
+// every s-th row, where it has one), else evenly in the file's order.
 // paint(k) colours them, shaded: FRAME, or tinted with their detection's verdict colour
 // (faintly but for detection k's, unless k is null).
 export function frameCloud(frame, owner, detections, viewpoint) {
@@ -115,16 +116,27 @@ export function frameCloud(frame, owner, detections, viewpoint) {
   for (let i = 0; i < count; i++) if (owner[i] >= 0) claimed++;
   const budgets = [MAX_DRAWN - Math.min(claimed, MAX_DRAWN / 2), MAX_DRAWN / 2]; // rest, claimed
   const sizes = [count - claimed, claimed];
-  // each group's every stride-th point: of an organized frame, every stride-th pixel of every
-  // stride-th row (evenly spaced, as the shading needs)
+  // each group's every stride-th point: of an organized frame, the first of each stride x
+  // stride block of pixels (evenly spaced, as the shading needs); its first pixel where it has
+  // one, and one of the others where pixels are missing in a pattern, as a depth image
+  // registered to a larger colour image's (docs/decisions.md#pixels-missing-in-a-pattern)
   const select = (strides) => {
     const kept = [];
     const seen = [0, 0];
+    const blocks = [new Set(), new Set()];
     for (let i = 0; i < count; i++) {
       const group = owner[i] >= 0 ? 1 : 0;
       const stride = strides[group];
-      const [row, col] = pixels ? [Math.floor(pixels[i] / shape[1]), pixels[i] % shape[1]] : [0, 0];
-      if (pixels ? row % stride === 0 && col % stride === 0 : seen[group]++ % stride === 0) kept.push(i);
+      if (!pixels) {
+        if (seen[group]++ % stride === 0) kept.push(i);
+        continue;
+      }
+      const row = Math.floor(pixels[i] / shape[1]);
+      const block = Math.floor(row / stride) * shape[1] + Math.floor((pixels[i] % shape[1]) / stride);
+      if (!blocks[group].has(block)) {
+        blocks[group].add(block); // the pixels come in order: the block's first is met first
+        kept.push(i);
+      }
     }
     return kept;
   };

@@ -15,7 +15,7 @@ from PIL import Image
 
 from tests.api.test_console import Page, browser  # noqa: F401 - the browser fixture
 from tests.conftest import server_holding
-from tests.frames import resting, shoot, spin, table
+from tests.frames import resting, shoot, spin, table, without
 
 BOX = (0.08, 0.06, 0.04)
 SMALL = (320, 240, 262.5)  # a quarter of VGA: the same field of view, a quick /detect
@@ -159,4 +159,26 @@ def test_a_dropped_frame_is_detected_listed_and_drawn(server, shot, detected, br
     assert chip_rgb(item) == VERDICT_RGB["uncertain"]
     picture = view.screenshot()
     assert coloured(picture, "uncertain") > 100 and coloured(picture, "match") == 0
+    assert tab.errors == []
+
+
+def test_a_frame_missing_every_other_row_is_drawn_whole(server, browser):  # noqa: F811
+    """An interlaced frame of more points than the console draws: thinned to a point a block
+    of pixels, not to every other row, which it has none on."""
+    mesh = trimesh.creation.box(BOX)
+    placed = [(mesh, *resting(mesh, spin(20), 0.0, 0.0))]
+    whole = shoot(placed, table(), (1280, 960, 1050.0), 60.0, 30.0, 0.8)
+    rows = np.arange(960)[:, None].repeat(1280, axis=1)
+    shot = without(whole, rows % 2 == 0)
+    valid = int(np.isfinite(shot.points[..., 0]).sum())
+    assert valid > 320_000, valid  # more than the console draws (frame.js, MAX_DRAWN)
+    tab = Page(browser, server.url)
+    page = tab.page
+    page.wait_for_selector("body[data-state=ready]", timeout=30_000)
+    tab.drop("detect-drop", "frame.pcd", shot.pcd(compressed=True))
+    page.wait_for_selector("#view[data-drawn=detection]", timeout=120_000)
+    view = page.locator("#view")
+    assert view.get_attribute("data-frame") == str(valid)
+    drawn = int(view.get_attribute("data-drawn-points"))
+    assert 0.4 * valid < drawn <= 320_000, drawn  # a point a 2 x 2 block: half of them
     assert tab.errors == []
