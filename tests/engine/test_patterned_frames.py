@@ -10,15 +10,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.engine.confidence import Calibration
 from service.engine.engine import Engine
 from service.engine.frame import Frame
-from service.engine.mapping import Mapper
-from service.engine.sampling import sample_surface_faces
-from service.settings import Settings
+from tests.engines import engine_holding
 from tests.frames import frame_of, registered, resting, shoot, spin, table, without
 
-SETTINGS = Settings()
 HEIGHT, WIDTH, FOCAL = 480, 640, 525.0
 ROWS, COLUMNS = np.mgrid[0:HEIGHT, 0:WIDTH]
 PATTERNS = {
@@ -90,17 +86,7 @@ def test_a_frame_registered_to_a_larger_image_is_searched_at_its_own_density():
 
 @pytest.fixture(scope="module")
 def engine() -> Engine:
-    if not SETTINGS.model.path.exists():
-        pytest.skip(f"no ONNX model at {SETTINGS.model.path}")
-    engine = Engine(
-        Mapper.from_settings(SETTINGS.model),
-        SETTINGS.engine,
-        Calibration.load(SETTINGS.confidence_path),
-    )
-    box = trimesh.creation.box((0.08, 0.06, 0.04))
-    points, faces = sample_surface_faces(box, 2048, 0)
-    engine.load([engine.make_reference("box", points, mesh=box, face_index=faces)])
-    return engine
+    return engine_holding({"box": trimesh.creation.box((0.08, 0.06, 0.04))})
 
 
 def patterned(shot, pattern: str):

@@ -18,7 +18,6 @@ from service.engine.answer import AlternativePose
 from service.engine.confidence import Calibration
 from service.engine.engine import Engine
 from service.engine.frame import Frame
-from service.engine.mapping import Mapper
 from service.engine.projection import DepthImage
 from service.engine.sampling import sample_surface_faces
 from service.engine.scene import (
@@ -40,6 +39,7 @@ from service.engine.tuning import (
     THROUGH_DOUBT,
 )
 from service.settings import Settings
+from tests.engines import engine_holding, registered
 from tests.frames import frame_of, resting, shoot, spin, table
 
 SETTINGS = Settings()
@@ -47,17 +47,7 @@ SETTINGS = Settings()
 
 @pytest.fixture(scope="module")
 def engine() -> Engine:
-    if not SETTINGS.model.path.exists():
-        pytest.skip(f"no ONNX model at {SETTINGS.model.path}")
-    engine = Engine(
-        Mapper.from_settings(SETTINGS.model),
-        SETTINGS.engine,
-        Calibration.load(SETTINGS.confidence_path),
-    )
-    box = trimesh.creation.box((0.08, 0.06, 0.04))
-    points, faces = sample_surface_faces(box, 2048, 0)
-    engine.load([engine.make_reference("box", points, mesh=box, face_index=faces)])
-    return engine
+    return engine_holding({"box": trimesh.creation.box((0.08, 0.06, 0.04))})
 
 
 @pytest.fixture(scope="module")
@@ -400,16 +390,6 @@ def box_and_cube(engine) -> tuple[Engine, dict[str, trimesh.Trimesh]]:
         Calibration.load(SETTINGS.detect_confidence_path),
     )
     return registered(calibrated, meshes), meshes | {"ball": trimesh.creation.icosphere(3, 0.02)}
-
-
-def registered(engine: Engine, meshes: dict[str, trimesh.Trimesh]) -> Engine:
-    """``engine`` holding each of ``meshes``, registered from 2,048 points on its faces."""
-    references = []
-    for name, mesh in meshes.items():
-        points, faces = sample_surface_faces(mesh, 2048, 0)
-        references.append(engine.make_reference(name, points, mesh=mesh, face_index=faces))
-    engine.load(references)
-    return engine
 
 
 def cube_beside_the_box(meshes, turn: float, distance: float):
