@@ -88,8 +88,9 @@ class Frame:
 
     def pixel_angle(self) -> float:
         """The angle between neighbouring pixels' rays (radians) of the full-resolution grid,
-        from its own horizontal neighbours; for a cloud without a grid, from its spacing.
-        Computed once a frame."""
+        from its own horizontal neighbours (a ``patterned`` frame's: points a few pixels apart
+        in a row, over their gaps); for a cloud without a grid, from its spacing. Computed once
+        a frame."""
         return self._pixel_angle
 
     @cached_property
@@ -152,8 +153,8 @@ class Frame:
 
     def thinned(self, voxel: float) -> Frame:
         """At most about one point per ``voxel``: every k-th row and column of an organized
-        frame (k from its pixels' footprint at the median range), one point a voxel of a
-        cloud without a grid. Never denser than it was."""
+        frame (k from its pixels' footprint at the median range, or its ``sparse_step``), one
+        point a voxel of a cloud without a grid. Never denser than it was."""
         if len(self) == 0 or voxel <= 0:
             return self
         if self.shape is not None:
