@@ -51,10 +51,10 @@ def empty_server(data_dir: Path, **groups) -> Server:
     return Server(Settings(model=model, gallery=gallery, **groups))
 
 
-def server_holding(data_dir: Path, meshes: dict) -> Server:
-    """``empty_server`` with each of ``meshes`` (trimesh meshes, by name) registered through
-    its API as an STL upload, without the self-check."""
-    server = empty_server(data_dir)
+def server_holding(data_dir: Path, meshes: dict, **groups) -> Server:
+    """``empty_server`` (its settings' ``groups``) with each of ``meshes`` (trimesh meshes, by
+    name) registered through its API as an STL upload, without the self-check."""
+    server = empty_server(data_dir, **groups)
     for name, mesh in meshes.items():
         buffer = io.BytesIO()
         mesh.export(buffer, file_type="stl")

@@ -42,7 +42,8 @@ def organized(grid: np.ndarray, max_points: int, what: str) -> Cloud:
     if len(valid) > max_points:
         raise InvalidPoints(
             f"the {what} has {len(valid)} valid points, more than the maximum of {max_points}: "
-            "crop it, or send a region of interest"
+            "crop or decimate it (every other row and column), or send POST /detect a region "
+            "of interest (roi): only the points inside it count then"
         )
     return Cloud(np.take(flat, valid, axis=0), valid.astype(np.int64), (height, width))
 

@@ -62,7 +62,8 @@ def depth_cloud(
     if count > max_points:
         raise InvalidPoints(
             f"the depth image has {count} pixels with a depth, more than the maximum of "
-            f"{max_points} points: send a mask of the part's pixels, or crop the image"
+            f"{max_points} points: send a mask of the part's pixels, crop the image, or send "
+            "POST /detect a region of interest (roi): only the points inside it count then"
         )
     rows, columns = np.nonzero(valid)
     z = z[rows, columns]

@@ -148,17 +148,18 @@ def form_points(
 
 
 def form_cloud(
-    form: Form, settings: Settings, imply: bool = True
+    form: Form, settings: Settings, imply: bool = True, max_points: int | None = None
 ) -> tuple[Cloud, list[float] | None]:
     """The form's ``file`` as a checked cloud (float32 points, and an organized frame's
     pixels), and the viewpoint the file implies: the origin for a depth image, the camera's
     centre for an organized cloud whose pixels' rays pin it (``clouds.camera_centre``), else
     None. Without ``imply`` (the request gives the viewpoint) no camera centre is solved
-    for: None."""
+    for: None. ``max_points``: the most valid points (the settings' limit unless given)."""
     data, filename = form.files["file"]
     camera = {name: form.value(name) for name in CAMERA_FIELDS if name in form.fields}
     mask = form.files.get("mask")
     limits = settings.limits
+    most = limits.max_points if max_points is None else max_points
     if camera or mask or depth.is_image(data, filename):
         if not camera:
             raise invalid(
@@ -166,15 +167,15 @@ def form_cloud(
             )
         image = depth.read_depth(data, filename)
         keep = None if mask is None else depth.read_image(*mask, "mask")
-        cloud = depth.depth_cloud(image, parse(DepthCamera, camera), keep, limits.max_points)
+        cloud = depth.depth_cloud(image, parse(DepthCamera, camera), keep, most)
         viewpoint = ORIGIN
     else:
-        upload = read_upload(data, filename, settings.gallery.reference_points, limits.max_points)
+        upload = read_upload(data, filename, settings.gallery.reference_points, most)
         cloud = Cloud(upload.points, upload.index, upload.shape)
         # an organized frame's camera, where its rays pin it (2-5 ms on a camera's frame)
         centre = camera_centre(cloud) if imply else None
         viewpoint = None if centre is None else [float(v) for v in centre]
-    points = validate_points(cloud.points, limits.min_points, limits.max_points)
+    points = validate_points(cloud.points, limits.min_points, most)
     return Cloud(points, cloud.index, cloud.shape), viewpoint
 
 

@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from service.client import Client
 from service.client.cli import main
+from service.settings import LimitSettings
 from tests.conftest import empty_server, server_holding
 from tests.frames import VGA, bin_walls, registered, resting, shoot, spin, table
 from tests.meshes import pybullet_mesh
@@ -180,6 +181,39 @@ def test_a_frame_in_millimetres_says_so(server, meshes):
     body = answer.json()
     assert body["detections"] == []
     assert len(body["reasons"]) == 1 and "probably in millimetres" in body["reasons"][0]
+
+
+@pytest.fixture(scope="module")
+def limited(tmp_path_factory, meshes):
+    """A real server that takes at most 200,000 valid points, holding box-a."""
+    server = server_holding(
+        tmp_path_factory.mktemp("limited"),
+        {"box-a": meshes["box-a"]},
+        limits=LimitSettings(max_points=200_000),
+    )
+    yield server
+    server.stop()
+
+
+def test_a_region_of_interest_counts_only_its_points_against_the_limit(limited, meshes):
+    """A camera of more pixels than the limit, searched in a region: only the points inside
+    count (up to twice the limit in the frame). Before, the frame was refused, its roi
+    ignored, though the refusal said to send one."""
+    a = resting(meshes["box-a"], spin(20), 0.0, 0.0)
+    shot = shoot([(meshes["box-a"], *a)], table())
+    valid = int(np.isfinite(shot.points[..., 0]).sum())
+    assert 200_000 < valid <= 400_000, valid
+    post = limited.client.post
+    whole = post("/detect", files={"file": ("frame.pcd", shot.pcd())}, timeout=300.0)
+    assert whole.status_code == 422 and "region of interest (roi)" in whole.json()["detail"]
+    centre = shot.poses[0][1]
+    roi = ",".join(f"{v:.4f}" for v in (*(centre - 0.1), *(centre + 0.1)))
+    body = detect(limited, shot, roi=roi)
+    assert [d["label"] for d in body["detections"] if d["verdict"] == "match"] == ["box-a"]
+    everything = ",".join(["-9", "-9", "-9", "9", "9", "9"])
+    wide = post("/detect", files={"file": ("frame.pcd", shot.pcd())}, data={"roi": everything})
+    assert wide.status_code == 422
+    assert f"the region of interest holds {valid} of the frame's valid points" in wide.text
 
 
 def test_a_frame_of_2048_by_1536_pixels_is_accepted(server, meshes):

@@ -36,12 +36,14 @@ from service.api.uploads import CAMERA_FIELDS, Form, form_cloud, read_body
 from service.api.validation import points_from_raw, validate_points
 from service.engine.answer import SceneAnswer
 from service.engine.frame import Frame
+from service.errors import InvalidPoints
 from service.settings import Settings
 
 router = APIRouter(tags=["detect"])
 
 OPTIONS = tuple(DetectOptions.model_fields)  # candidates min_confidence viewpoint ...
 SEARCH_SHARE = 0.75  # of the request's time budget, for the search (the rest: the answer)
+ROI_CEILING = 2  # a frame given a region of interest: valid points up to this many limits
 BODY = {
     "required": True,
     "content": {
@@ -115,21 +117,25 @@ def _detect(
     index, shape, implied = None, None, None
     if isinstance(body, Form):
         options = parse(DetectOptions, {**query, **form_options(body)})
-        cloud, implied = form_cloud(body, settings, imply=options.viewpoint is None)
+        most = _most_points(options, settings)
+        cloud, implied = form_cloud(body, settings, options.viewpoint is None, most)
         points, index, shape = cloud.points, cloud.index, cloud.shape
     elif kind == RAW:
         options = parse(DetectOptions, query)
-        points = points_from_raw(body, limits.min_points, limits.max_points)
+        points = points_from_raw(body, limits.min_points, _most_points(options, settings))
     else:
         data = json_object(body)
         known_fields(data, DetectRequest.model_fields)
         options = parse(
             DetectOptions, {**query, **{k: v for k, v in data.items() if k != "points"}}
         )
-        points = validate_points(require(data, "points"), limits.min_points, limits.max_points)
+        most = _most_points(options, settings)
+        points = validate_points(require(data, "points"), limits.min_points, most)
     viewpoint = options.viewpoint or implied
     frame = Frame.of(points, index, shape, None if viewpoint is None else np.asarray(viewpoint))
     roi = None if options.roi is None else (np.array(options.roi.min), np.array(options.roi.max))
+    if roi is not None:
+        _check_inside(points, roi, limits.max_points)
     # the search stops in time to answer with what it found, before the request's budget
     deadline = time.monotonic() + SEARCH_SHARE * limits.request_timeout_s
     scene = engine.detect(
@@ -141,6 +147,26 @@ def _detect(
         deadline=deadline,
     )
     return detect_response(scene)
+
+
+def _most_points(options: DetectOptions, settings: Settings) -> int:
+    """The most valid points a frame may hold: the limit, or with a region of interest
+    ``ROI_CEILING`` times it, of which only those inside count against the limit: a camera of
+    more pixels than the limit, searched in a bin's region
+    (docs/decisions.md#a-region-of-interest-and-the-limit)."""
+    limit = settings.limits.max_points
+    return limit if options.roi is None else ROI_CEILING * limit
+
+
+def _check_inside(points: np.ndarray, roi: tuple[np.ndarray, np.ndarray], limit: int) -> None:
+    """A 422 where the region of interest holds more than ``limit`` of the frame's points."""
+    low, high = roi
+    inside = int(np.count_nonzero(np.all((points >= low) & (points <= high), axis=1)))
+    if inside > limit:
+        raise InvalidPoints(
+            f"the region of interest holds {inside} of the frame's valid points, more than the "
+            f"maximum of {limit}: narrow it, or decimate the frame (every other row and column)"
+        )
 
 
 def form_options(form: Form) -> dict[str, Any]:
