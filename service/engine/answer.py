@@ -80,3 +80,8 @@ class SceneAnswer:
     timings_ms: dict[str, float] = field(default_factory=dict)
     complete: bool = True  # every region was searched before the deadline
     reasons: list[str] = field(default_factory=list)  # why not, if not
+
+    @classmethod
+    def unsearched(cls, num_points: int, timings_ms: dict[str, float], reason: str) -> SceneAnswer:
+        """A frame not searched, and why: none of its ``num_points`` set aside or explained."""
+        return cls([], num_points, num_points, [], timings_ms, True, [reason])

@@ -866,7 +866,7 @@ class Engine:
             inside = frame.cropped(*roi)
             if len(inside) < MIN_SEGMENT:  # nothing to search: say where the frame is
                 reason = cropped_reason(frame.points, roi, len(inside), MIN_SEGMENT)
-                return SceneAnswer([], len(inside), len(inside), [], clock.total(), True, [reason])
+                return SceneAnswer.unsearched(len(inside), clock.total(), reason)
             frame = inside
         scales = self._frame_scales(query, frame)
         thin = frame.thinned(scales.min() / THIN_PER_SCALE)  # thin
@@ -874,7 +874,7 @@ class Engine:
         clock.lap("thin")
         unit = frame_scale_reason(thin.ranges(), angle, float(scales.max()), MIN_SEGMENT)
         if unit is not None:  # no part could be seen: a frame in millimetres, say
-            return SceneAnswer([], len(frame), len(frame), [], clock.total(), True, [unit])
+            return SceneAnswer.unsearched(len(frame), clock.total(), unit)
         keep, supports = set_aside_supports(thin, angle, scales, query.rng)
         clock.lap("supports")
         rest = thin.take(keep)

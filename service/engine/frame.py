@@ -83,8 +83,7 @@ class Frame:
 
     def cropped(self, low: np.ndarray, high: np.ndarray) -> Frame:
         """Only the points inside the box ``low``-``high`` (the request's ``roi``)."""
-        inside = np.all((self.points >= low) & (self.points <= high), axis=1)
-        return self.take(inside)
+        return self.take(inside_box(self.points, low, high))
 
     def pixel_angle(self) -> float:
         """The angle between neighbouring pixels' rays (radians) of the full-resolution grid,
@@ -97,17 +96,11 @@ class Frame:
     def _pixel_angle(self) -> float:
         if self.shape is None or len(self) < 2:
             return spacing_angle(self.points, self.viewpoint)
-        index, points = self.index, self.points
-        if np.any(index[1:] < index[:-1]):  # a frame's points come in pixel order: no sort
-            order = np.argsort(index)
-            index, points = index[order], points[order]
+        index, points = self._in_pixel_order
         apart = None
         if not self.patterned:
-            # every k-th point with the next, some PIXEL_PAIRS pairs spread over the grid: all
-            # pairs' median to 0.1 %, 5 ms where all took 27-170 ms on 1280 x 720
-            # (docs/decisions.md#a-frames-body)
-            first = np.arange(0, len(index) - 1, max(1, (len(index) - 1) // PIXEL_PAIRS))
-            first = first[np.take(index, first + 1) - np.take(index, first) == self.step]
+            first, gap = self._next_pairs
+            first = first[gap == self.step]
         else:  # the next point along its row, a few pixels on, drawn at random: a pattern's
             # gaps (2, 1, 2, 1) alias with a fixed stride
             pairs = min(PIXEL_PAIRS, len(index) - 1)
@@ -146,10 +139,26 @@ class Frame:
         checkerboard of dropouts; docs/decisions.md#pixels-missing-in-a-pattern)."""
         if self.shape is None or len(self) < 2:
             return False
+        _, gap = self._next_pairs
+        return bool(np.count_nonzero(gap == self.step) < DIRECT_PAIRS * len(gap))
+
+    @cached_property
+    def _next_pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every k-th point (in pixel order) and its gap in pixels to the next, some
+        PIXEL_PAIRS pairs spread over the grid: all pairs' median to 0.1 %, 5 ms where all
+        took 27-170 ms on 1280 x 720 (docs/decisions.md#a-frames-body)."""
         index = self._sorted_index
         first = np.arange(0, len(index) - 1, max(1, (len(index) - 1) // PIXEL_PAIRS))
-        gap = np.take(index, first + 1) - np.take(index, first)
-        return bool(np.count_nonzero(gap == self.step) < DIRECT_PAIRS * len(gap))
+        return first, np.take(index, first + 1) - np.take(index, first)
+
+    @cached_property
+    def _in_pixel_order(self) -> tuple[np.ndarray, np.ndarray]:
+        """The points' pixels and the points, in pixel order (a frame's come so: no sort)."""
+        index, points = self.index, self.points
+        if np.any(index[1:] < index[:-1]):
+            order = np.argsort(index)
+            index, points = index[order], points[order]
+        return index, points
 
     def thinned(self, voxel: float) -> Frame:
         """At most about one point per ``voxel``: every k-th row and column of an organized
@@ -176,9 +185,7 @@ class Frame:
             grid = np.zeros(self.shape, dtype=bool)  # looked up: no // or % a point
             grid[::stride, ::stride] = True
         else:
-            valid = np.zeros(self.shape, dtype=bool)
-            valid.ravel()[self.index] = True
-            grid = _first_of_blocks(valid, stride)
+            grid = _first_of_blocks(self._valid.reshape(self.shape), stride)
         thin = self.take(np.take(grid.ravel(), self.index))
         return Frame(thin.points, thin.index, self.shape, self.viewpoint, stride)
 
@@ -192,11 +199,17 @@ class Frame:
         at = np.minimum(np.searchsorted(index, firsts), len(index) - 1)
         return float(np.mean(index[at] == firsts)) if len(chosen) else 1.0
 
-    @cached_property
+    @property
     def _sorted_index(self) -> np.ndarray:
-        """The points' pixels in order (a frame's come so: no sort)."""
-        index = self.index
-        return index if not np.any(index[1:] < index[:-1]) else np.sort(index)
+        """The points' pixels in order."""
+        return self._in_pixel_order[0]
+
+    @cached_property
+    def _valid(self) -> np.ndarray:
+        """(height * width,) whether each pixel of the organized frame's grid has a point."""
+        valid = np.zeros(self.shape[0] * self.shape[1], dtype=bool)
+        valid[self.index] = True
+        return valid
 
     def sparse_step(self) -> int:
         """The stride of the grid on which an organized frame's points lie about as densely
@@ -210,9 +223,7 @@ class Frame:
     def _sparse_step(self) -> int:
         if self.shape is None or len(self) < 16 or self.step > 1 or not self.patterned:
             return 1
-        height, width = self.shape
-        valid = np.zeros(height * width, dtype=bool)
-        valid[self.index] = True
+        width = self.shape[1]
         low = int(self._sorted_index[0]) // width  # the rows the points span
         high = int(self._sorted_index[-1]) // width - SPARSE_WINDOW + 1
         if high <= low or width < SPARSE_WINDOW:
@@ -224,7 +235,7 @@ class Frame:
         corners += rng.integers(0, width - SPARSE_WINDOW + 1, SPARSE_SAMPLE)
         offsets = np.arange(SPARSE_WINDOW)
         around = (offsets[:, None] * width + offsets[None, :]).ravel()
-        shares = np.take(valid, corners[:, None] + around).mean(axis=1)
+        shares = np.take(self._valid, corners[:, None] + around).mean(axis=1)
         shares = shares[shares > 0]  # windows on the frame's parts, not where it saw nothing
         if len(shares) < 16:
             return 1
@@ -252,6 +263,16 @@ class Frame:
         ranges = distances(self.points, self.viewpoint)
         ranges.flags.writeable = False
         return ranges
+
+
+def inside_box(points: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """(N,) whether each of ``points`` lies in the box ``low``-``high``, column by column: a
+    reduction over rows of 3 is numpy's slow path (docs/decisions.md#a-frames-body)."""
+    inside = np.ones(len(points), dtype=bool)
+    for axis in range(3):
+        column = points[:, axis]
+        inside &= (column >= low[axis]) & (column <= high[axis])
+    return inside
 
 
 def cropped_reason(
