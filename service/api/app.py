@@ -43,6 +43,7 @@ from service.api.schemas import (
     ReferenceRequest,
 )
 from service.api.uploads import cloud_upload_schema
+from service.engine import kernels
 from service.engine.mapping import Mapper
 from service.errors import (
     EmptyGallery,
@@ -144,6 +145,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     )
     _log_auth(settings)
     engine = startup.make_engine(settings, mapper)
+    log.info("refinement and verification: %s", kernels.describe())
     catalog = Catalog(engine, store, settings.gallery.max_references)
     app.state.catalog = catalog
     app.state.processes = processes = EngineProcesses(catalog, settings, settings.engine_processes)
@@ -200,6 +202,7 @@ def _keep_gallery(
     """Load the gallery, waiting while its store cannot be reached; start the engine's worker
     processes; then follow the changes other replicas make (``service.gallery.follower``) until
     the app stops."""
+    kernels.warm()  # compiled on the first start (seconds), loaded from numba's cache after
     while not _load(catalog, settings, loading):
         if loading.status == "failed" or stop.wait(LOAD_RETRY_S):
             return

@@ -26,6 +26,7 @@ from typing import Any
 
 from service import memory
 from service.api import logs, startup
+from service.engine import kernels
 from service.engine.engine import Engine
 from service.errors import StoreUnavailable
 from service.gallery.catalog import Catalog
@@ -168,6 +169,7 @@ def _start(settings: Settings, started: threading.Barrier) -> None:
     _watch_parent()
     mapper, store = startup.prepare(settings)
     engine = startup.make_engine(settings, mapper)
+    kernels.warm()
     catalog = Catalog(engine, store, settings.gallery.max_references)
     _seen = store.version()
     catalog.load(None, writer=False)  # the service has seeded and refreshed the store

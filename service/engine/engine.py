@@ -31,7 +31,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from service.engine import confidence
+from service.engine import confidence, kernels
 from service.engine.alignment import alignment_error
 from service.engine.answer import Alignment, AlternativePose, SceneAnswer
 from service.engine.classifier import LinearClassifier, view_features, view_gram
@@ -109,6 +109,7 @@ class Engine:
     ):
         self.mapper = mapper
         self.settings = settings or EngineSettings()
+        kernels.use(self.settings.compiled)  # the process's loops: one engine's settings a process
         self.calibration = calibration
         self.scene_calibration = scene_calibration  # a detection's confidence, if fitted
         self._snapshot = Snapshot({}, None)

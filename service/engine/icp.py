@@ -26,6 +26,7 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import cKDTree
 
+from service.engine import kernels
 from service.engine.alignment import to_model_frame
 from service.engine.distance_field import DistanceField
 from service.engine.tuning import BACK_FACING, BEHIND, CLOSE, CLOSE_RAD, SURFACE_NEIGHBOURS
@@ -36,6 +37,7 @@ DIAGONAL = np.arange(6)
 # the cross-product matrix's entries: K[r, c] = sign * k[axis]
 CROSS_ROWS, CROSS_COLS = np.array([0, 0, 1, 1, 2, 2]), np.array([1, 2, 0, 2, 0, 1])
 CROSS_AXES, CROSS_SIGNS = np.array([2, 1, 2, 0, 1, 0]), np.array([-1.0, 1, 1, -1, -1, 1])
+NO_CAMERA = np.zeros(3)  # the compiled loop's viewpoint where none is told
 
 
 @dataclass(frozen=True)
@@ -106,6 +108,23 @@ class Surface:
         count = candidates.shape[-1]  # each point's pick, by its flat index: no index grids
         picked = candidates.take(np.arange(0, candidates.size, count) + best.ravel())
         return picked.reshape(best.shape)
+
+    @cached_property
+    def compiled(self) -> tuple:
+        """The surface as ``kernels`` take it: the field's origin, voxel, shape and flat cells,
+        the samples, their normals, neighbours, squared lengths and planes' offsets."""
+        field = self.field
+        return (
+            field.origin,
+            field.voxel,
+            np.array(field.nearest.shape, np.int64),
+            np.ascontiguousarray(field.nearest).reshape(-1),
+            np.ascontiguousarray(self.points, np.float64),
+            np.ascontiguousarray(self.normals, np.float64),
+            np.ascontiguousarray(self.neighbours, np.int64),
+            self._squares,
+            self._offsets,
+        )
 
     @cached_property
     def _squares(self) -> np.ndarray:
@@ -194,6 +213,9 @@ def icp(
     camera was (scene frame), if known.
     """
     rotation, translation = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
+    if kernels.switch.enabled:
+        start = Start(surface, rotation, translation, noise, gate, iterations, viewpoint)
+        return _compiled(np.ascontiguousarray(scene, np.float64), start, tolerance_rad, tolerance)
     done, precise = 0, False
     for iteration in range(1, iterations + 1):
         done = iteration
@@ -246,6 +268,12 @@ def icp_many(
     Each start's refined rotation, translation and the iterations it ran. One start is
     refined by ``icp``: its arrays of one pose cost less than the stacks' of one."""
     scene = np.asarray(scene, np.float64)
+    if kernels.switch.enabled:  # each start in one compiled loop
+        scene = np.ascontiguousarray(scene)
+        return [
+            _compiled(scene if scene.ndim == 2 else scene[h], s, tolerance_rad, tolerance)
+            for h, s in enumerate(starts)
+        ]
     if len(starts) == 1:
         (s,) = starts
         return [
@@ -317,6 +345,30 @@ def icp_many(
             noise, gate, budget, precise = noise[keep], gate[keep], budget[keep], precise[keep]
             scene = scene if scene.ndim == 2 else scene[keep]
     return out
+
+
+def _compiled(
+    scene: np.ndarray, start: Start, tolerance_rad: float, tolerance: float
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """One start refined by ``kernels.refine`` on ``scene`` (M, 3), C-ordered float64."""
+    told = start.viewpoint is not None
+    rotation, translation, done = kernels.refine(
+        scene,
+        np.ascontiguousarray(start.rotation, np.float64),
+        np.ascontiguousarray(start.translation, np.float64),
+        float(start.noise),
+        float(start.gate),
+        int(start.iterations),
+        tolerance_rad,
+        tolerance,
+        told,
+        np.ascontiguousarray(start.viewpoint, np.float64) if told else NO_CAMERA,
+        *start.surface.compiled,
+        BACK_FACING,
+        CLOSE,
+        CLOSE_RAD,
+    )
+    return rotation, translation, done
 
 
 def _pairs(

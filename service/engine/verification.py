@@ -27,10 +27,12 @@ from typing import Literal
 
 import numpy as np
 
+from service.engine import kernels
 from service.engine.icp import Surface
-from service.engine.tuning import OCCUPANCY_SPACINGS, PATCH_SPACINGS
+from service.engine.tuning import BEHIND, OCCUPANCY_SPACINGS, PATCH_SPACINGS
 
 Lookup = Literal["facing", "nearest", "field"]  # which sample ``surface_distance`` measures to
+LOOKUPS = {"field": kernels.FIELD, "nearest": kernels.NEAREST, "facing": kernels.FACING}
 
 
 class Occupancy:
@@ -89,6 +91,25 @@ def surface_distance(
     field's own answer (a fifth of the time, for screening). A point on the surface lies up to
     about two spacings from the nearest sample of a random sample, so within
     ``PATCH_SPACINGS`` spacings only its distance to the tangent plane counts."""
+    if kernels.switch.enabled:
+        flat = np.ascontiguousarray(model_points, np.float64).reshape(-1, 3)
+        origin, voxel, shape, cells, points, normals, neighbours, squares, _ = surface.compiled
+        distance, nearest = kernels.distances(
+            flat,
+            LOOKUPS[lookup],
+            origin,
+            voxel,
+            shape,
+            cells,
+            points,
+            normals,
+            neighbours,
+            squares,
+            BEHIND * surface.spacing,
+            PATCH_SPACINGS * surface.spacing,
+        )
+        shape = model_points.shape[:-1]
+        return distance.reshape(shape), nearest.reshape(shape)
     if lookup == "field":
         nearest = surface.field.lookup(model_points)
     else:
@@ -116,6 +137,25 @@ def fit(
 ) -> np.ndarray:
     """(H,) share of ``observed`` (S, 3) within ``tolerance`` of the surface, for each of H poses
     ``scene = R @ model + t``."""
+    if kernels.switch.enabled:  # each point carried and measured in one loop
+        origin, voxel, shape, cells, points, normals, neighbours, squares, _ = surface.compiled
+        return kernels.shares(
+            np.ascontiguousarray(observed, np.float64),
+            np.ascontiguousarray(rotations, np.float64),
+            np.ascontiguousarray(translations, np.float64),
+            tolerance,
+            LOOKUPS[lookup],
+            origin,
+            voxel,
+            shape,
+            cells,
+            points,
+            normals,
+            neighbours,
+            squares,
+            BEHIND * surface.spacing,
+            PATCH_SPACINGS * surface.spacing,
+        )
     model = np.matmul(observed[None] - translations[:, None], rotations)  # R^T (q - t)
     distance, _ = surface_distance(surface, model, lookup)
     return (distance < tolerance).mean(axis=1)
@@ -126,5 +166,16 @@ def coverage(
 ) -> np.ndarray:
     """(H,) share of the expected-visible reference points ``expected`` (H, M, 3) that have an
     observed point near them at each pose."""
+    if kernels.switch.enabled:
+        return kernels.covered(
+            np.ascontiguousarray(expected, np.float64),
+            np.ascontiguousarray(rotations, np.float64),
+            np.ascontiguousarray(translations, np.float64),
+            np.asarray(occupancy.low, np.float64),
+            occupancy.voxel,
+            occupancy.last,
+            occupancy.strides,
+            occupancy.grid,
+        )
     placed = np.matmul(expected, rotations.transpose(0, 2, 1)) + translations[:, None]
     return occupancy.near(placed).mean(axis=1)
