@@ -18,6 +18,8 @@
 #                 CUDAExecutionProvider; without a GPU the service falls back to the CPU.
 #                   docker build --build-arg ONNXRUNTIME=onnxruntime-gpu -t dpc-mn-service:gpu .
 #   PYTHON_IMAGE  the base image, pinned to a patch release (pin its digest for a release build).
+#   EXTRAS        "fast" (the default): refinement's loops compiled by numba, POST /detect some
+#                 40 % faster; "" leaves numba out (an image 0.2 GB smaller, numpy's loops).
 #
 # Settings are environment variables DPC_<GROUP>__<FIELD> (service/settings.py), e.g.
 #   docker run -e DPC_ENGINE__TOP_K=5 -e DPC_AUTH__KEYS='{"<key>": "admin"}' ...
@@ -29,6 +31,7 @@ ARG PYTHON_IMAGE=python:3.11.14-slim-bookworm
 FROM ${PYTHON_IMAGE}
 
 ARG ONNXRUNTIME=onnxruntime
+ARG EXTRAS=fast
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
@@ -37,12 +40,17 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 
 SHELL ["/bin/bash", "-o", "pipefail", "-c"]
 
-# The package without extras: the runtime dependencies of pyproject.toml, never torch.
+# The package with its runtime dependencies (and the fast extra), never torch; numba's compiled
+# loops cached in the image, where the service's user may also write them.
+ENV NUMBA_CACHE_DIR=/var/cache/numba
 COPY pyproject.toml README.md /tmp/src/
 COPY service /tmp/src/service
 COPY training /tmp/src/training
-RUN pip install --no-cache-dir /tmp/src \
+RUN pip install --no-cache-dir "/tmp/src${EXTRAS:+[${EXTRAS}]}" \
     && rm -rf /tmp/src \
+    && mkdir -p "${NUMBA_CACHE_DIR}" \
+    && python -c "from service.engine import kernels; kernels.warm(); print(kernels.describe())" \
+    && chown -R 10001:10001 "${NUMBA_CACHE_DIR}" \
     && if python -c "import torch" 2>/dev/null; then echo "torch must not be installed" >&2; exit 1; fi
 
 # Optionally the CUDA build of onnxruntime in place of the CPU one.
