@@ -363,7 +363,7 @@ def _compiled(
         tolerance,
         told,
         np.ascontiguousarray(start.viewpoint, np.float64) if told else NO_CAMERA,
-        *start.surface.compiled,
+        start.surface.compiled,
         BACK_FACING,
         CLOSE,
         CLOSE_RAD,

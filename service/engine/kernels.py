@@ -76,11 +76,11 @@ def warm() -> None:
     surface = (*field, points, points.copy(), neighbours, squares, offsets)
     pose = (np.eye(3), np.zeros(3))
     for told in (False, True):
-        refine(points, *pose, 0.01, 0.5, 2, 5e-4, 0.05, told, np.ones(3), *surface, 0.2, 0.5, 0.01)
+        refine(points, *pose, 0.01, 0.5, 2, 5e-4, 0.05, told, np.ones(3), surface, 0.2, 0.5, 0.01)
     poses = (np.eye(3)[None], np.zeros((1, 3)))
     for lookup in (FIELD, NEAREST, FACING):
-        distances(points, lookup, *surface[:-1], 0.1, 0.1)
-        shares(points, *poses, 0.1, lookup, *surface[:-1], 0.1, 0.1)
+        distances(points, lookup, surface, 0.1, 0.1)
+        shares(points, *poses, 0.1, lookup, surface, 0.1, 0.1)
     grid = np.ones(27, bool)
     covered(points[None], *poses, np.zeros(3), 1.0, np.array([2, 2, 2]), np.array([9, 3, 1]), grid)
 
@@ -97,9 +97,10 @@ def _compiled(function):
 
 
 @_compiled
-def _field(x, y, z, origin, voxel, shape, cells):
+def _field(x, y, z, surface):
     """The distance field's sample for one point (``DistanceField.lookup``): the voxel's
-    rounded index, clipped onto the grid (NaN to voxel 0)."""
+    rounded index, clipped onto the grid (NaN to voxel 0). ``surface``: ``Surface.compiled``."""
+    origin, voxel, shape, cells = surface[0], surface[1], surface[2], surface[3]
     i = np.rint((x - origin[0]) / voxel)
     j = np.rint((y - origin[1]) / voxel)
     k = np.rint((z - origin[2]) / voxel)
@@ -170,24 +171,17 @@ def _solve(system, right):
 
 
 @_compiled
-def _nearest(
-    x,
-    y,
-    z,
-    first,
-    points,
-    squares,
-    neighbours,
-    has_camera,
-    camera,
-    camera_square,
-    normals,
-    offsets,
-    back_facing,
-):
+def _nearest(x, y, z, first, surface, has_camera, camera, camera_square, back_facing):
     """``Surface.nearest`` for one point: the nearest of ``first``'s neighbours, ordered by
     |q|^2 - 2 p.q as there; told the camera, the nearest of those not facing away from it
     (the nearest of all where every one does)."""
+    points, normals, neighbours, squares, offsets = (
+        surface[4],
+        surface[5],
+        surface[6],
+        surface[7],
+        surface[8],
+    )
     best, best_square, any_best, any_square = -1, np.inf, -1, np.inf
     for n in range(neighbours.shape[1]):
         c = neighbours[first, n]
@@ -220,20 +214,14 @@ def refine(
     tolerance,
     has_camera,
     viewpoint,
-    origin,
-    voxel,
-    shape,
-    cells,
-    points,
-    normals,
-    neighbours,
-    squares,
-    offsets,
+    surface,
     back_facing,
     close,
     close_rad,
 ):
-    """One start of ``icp.icp``: the refined rotation, translation and the iterations run."""
+    """One start of ``icp.icp``: the refined rotation, translation and the iterations run.
+    ``surface``: ``Surface.compiled``."""
+    points, normals = surface[4], surface[5]
     count = scene.shape[0]
     rotation, translation = rotation.copy(), translation.copy()
     model = np.empty((count, 3))
@@ -264,23 +252,9 @@ def refine(
         kept = 0
         for i in range(count):
             x, y, z = model[i, 0], model[i, 1], model[i, 2]
-            c = _field(x, y, z, origin, voxel, shape, cells)
+            c = _field(x, y, z, surface)
             if precise:
-                c = _nearest(
-                    x,
-                    y,
-                    z,
-                    c,
-                    points,
-                    squares,
-                    neighbours,
-                    told,
-                    camera,
-                    camera_square,
-                    normals,
-                    offsets,
-                    back_facing,
-                )
+                c = _nearest(x, y, z, c, surface, told, camera, camera_square, back_facing)
             o0, o1, o2 = x - points[c, 0], y - points[c, 1], z - points[c, 2]
             if o0 * o0 + o1 * o1 + o2 * o2 < gate_square:
                 n0, n1, n2 = normals[c, 0], normals[c, 1], normals[c, 2]
@@ -343,16 +317,13 @@ def refine(
 
 
 @_compiled
-def _sample(
-    x, y, z, lookup, origin, voxel, shape, cells, points, normals, neighbours, squares, behind
-):
+def _sample(x, y, z, lookup, surface, behind):
     """The sample one point is measured to (``distances``)."""
-    c = _field(x, y, z, origin, voxel, shape, cells)
+    c = _field(x, y, z, surface)
     if lookup == NEAREST:
-        return _nearest(
-            x, y, z, c, points, squares, neighbours, False, NO_CAMERA, 0.0, normals, squares, 0.0
-        )
+        return _nearest(x, y, z, c, surface, False, NO_CAMERA, 0.0, 0.0)
     if lookup == FACING:  # the nearest the point is not behind (the nearest if behind all)
+        points, normals, neighbours = surface[4], surface[5], surface[6]
         best, best_square, any_best, any_square = -1, np.inf, -1, np.inf
         for n in range(neighbours.shape[1]):
             k = neighbours[c, n]
@@ -369,8 +340,9 @@ def _sample(
 
 
 @_compiled
-def _patch(x, y, z, c, points, normals, patch):
+def _patch(x, y, z, c, surface, patch):
     """One point's distance to sample ``c``'s tangent patch (``patch_distance``)."""
+    points, normals = surface[4], surface[5]
     o0, o1, o2 = x - points[c, 0], y - points[c, 1], z - points[c, 2]
     along = o0 * normals[c, 0] + o1 * normals[c, 1] + o2 * normals[c, 2]
     across = math.sqrt(max(o0 * o0 + o1 * o1 + o2 * o2 - along * along, 0.0))
@@ -378,53 +350,21 @@ def _patch(x, y, z, c, points, normals, patch):
 
 
 @_compiled
-def distances(
-    model, lookup, origin, voxel, shape, cells, points, normals, neighbours, squares, behind, patch
-):
+def distances(model, lookup, surface, behind, patch):
     """``verification.surface_distance`` on ``model`` (P, 3): each point's distance to the
     tangent patch of its sample (``FIELD``, ``NEAREST`` or ``FACING``), and the sample."""
     count = model.shape[0]
     distance, sample = np.empty(count), np.empty(count, np.int64)
     for i in range(count):
         x, y, z = model[i, 0], model[i, 1], model[i, 2]
-        c = _sample(
-            x,
-            y,
-            z,
-            lookup,
-            origin,
-            voxel,
-            shape,
-            cells,
-            points,
-            normals,
-            neighbours,
-            squares,
-            behind,
-        )
-        distance[i] = _patch(x, y, z, c, points, normals, patch)
+        c = _sample(x, y, z, lookup, surface, behind)
+        distance[i] = _patch(x, y, z, c, surface, patch)
         sample[i] = c
     return distance, sample
 
 
 @_compiled
-def shares(
-    observed,
-    rotations,
-    translations,
-    tolerance,
-    lookup,
-    origin,
-    voxel,
-    shape,
-    cells,
-    points,
-    normals,
-    neighbours,
-    squares,
-    behind,
-    patch,
-):
+def shares(observed, rotations, translations, tolerance, lookup, surface, behind, patch):
     """``verification.fit``: (H,) the share of ``observed`` (S, 3) within ``tolerance`` of the
     surface at each pose, the points carried into the model frame one at a time."""
     out = np.empty(len(rotations))
@@ -437,22 +377,8 @@ def shares(
             x = d0 * r[0, 0] + d1 * r[1, 0] + d2 * r[2, 0]
             y = d0 * r[0, 1] + d1 * r[1, 1] + d2 * r[2, 1]
             z = d0 * r[0, 2] + d1 * r[1, 2] + d2 * r[2, 2]
-            c = _sample(
-                x,
-                y,
-                z,
-                lookup,
-                origin,
-                voxel,
-                shape,
-                cells,
-                points,
-                normals,
-                neighbours,
-                squares,
-                behind,
-            )
-            if _patch(x, y, z, c, points, normals, patch) < tolerance:
+            c = _sample(x, y, z, lookup, surface, behind)
+            if _patch(x, y, z, c, surface, patch) < tolerance:
                 within += 1
         out[h] = within / observed.shape[0]
     return out

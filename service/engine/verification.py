@@ -93,21 +93,7 @@ def surface_distance(
     ``PATCH_SPACINGS`` spacings only its distance to the tangent plane counts."""
     if kernels.switch.enabled:
         flat = np.ascontiguousarray(model_points, np.float64).reshape(-1, 3)
-        origin, voxel, shape, cells, points, normals, neighbours, squares, _ = surface.compiled
-        distance, nearest = kernels.distances(
-            flat,
-            LOOKUPS[lookup],
-            origin,
-            voxel,
-            shape,
-            cells,
-            points,
-            normals,
-            neighbours,
-            squares,
-            BEHIND * surface.spacing,
-            PATCH_SPACINGS * surface.spacing,
-        )
+        distance, nearest = kernels.distances(flat, LOOKUPS[lookup], *_measured(surface))
         shape = model_points.shape[:-1]
         return distance.reshape(shape), nearest.reshape(shape)
     if lookup == "field":
@@ -115,6 +101,12 @@ def surface_distance(
     else:
         nearest = surface.nearest(model_points, facing=lookup == "facing")
     return patch_distance(surface, model_points, nearest), nearest
+
+
+def _measured(surface: Surface) -> tuple:
+    """What ``kernels`` measure a surface by: its arrays, how far behind a tangent plane a
+    point may lie (``BEHIND``), how far a patch reaches (``PATCH_SPACINGS``)."""
+    return surface.compiled, BEHIND * surface.spacing, PATCH_SPACINGS * surface.spacing
 
 
 def patch_distance(surface: Surface, model_points: np.ndarray, nearest: np.ndarray) -> np.ndarray:
@@ -138,24 +130,8 @@ def fit(
     """(H,) share of ``observed`` (S, 3) within ``tolerance`` of the surface, for each of H poses
     ``scene = R @ model + t``."""
     if kernels.switch.enabled:  # each point carried and measured in one loop
-        origin, voxel, shape, cells, points, normals, neighbours, squares, _ = surface.compiled
-        return kernels.shares(
-            np.ascontiguousarray(observed, np.float64),
-            np.ascontiguousarray(rotations, np.float64),
-            np.ascontiguousarray(translations, np.float64),
-            tolerance,
-            LOOKUPS[lookup],
-            origin,
-            voxel,
-            shape,
-            cells,
-            points,
-            normals,
-            neighbours,
-            squares,
-            BEHIND * surface.spacing,
-            PATCH_SPACINGS * surface.spacing,
-        )
+        floats = (np.ascontiguousarray(a, np.float64) for a in (observed, rotations, translations))
+        return kernels.shares(*floats, tolerance, LOOKUPS[lookup], *_measured(surface))
     model = np.matmul(observed[None] - translations[:, None], rotations)  # R^T (q - t)
     distance, _ = surface_distance(surface, model, lookup)
     return (distance < tolerance).mean(axis=1)
