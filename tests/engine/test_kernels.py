@@ -236,3 +236,26 @@ def test_warming_compiles_every_loop_for_what_the_engine_passes():
     )
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.startswith("True"), done.stdout
+
+
+def test_where_no_cache_can_be_written_the_loops_compile_in_each_process():
+    """A read-only image (Kubernetes' readOnlyRootFilesystem, no writable NUMBA_CACHE_DIR):
+    numba finds nowhere to cache, and the loops still compile and run."""
+    import subprocess
+    import sys
+
+    from tests.servers import REPO
+
+    script = (
+        "import numba.core.caching as caching\n"
+        "impl = getattr(caching, 'CacheImpl', None) or caching._CacheImpl  # numba 0.68 / older\n"
+        "impl._locator_classes = []  # no cache locator can be used\n"
+        "from service.engine import kernels\n"
+        "kernels.warm()\n"
+        "print(kernels.switch.enabled, kernels.refine.signatures != [])\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["True", "True"], done.stdout
