@@ -350,6 +350,10 @@ class Health(BaseModel):
     )
     model: ModelIdentity
     providers: list[str] = Field(description="onnxruntime execution providers in use")
+    loops: Literal["compiled", "numpy"] = Field(
+        description="refinement's and verification's loops: compiled by numba (the fast "
+        "extra), or numpy's (a third slower on POST /detect; the same answers)"
+    )
     references: int
     detail: str | None = Field(None, description="why the service is not ready")
 

@@ -21,6 +21,7 @@ import orjson
 import pytest
 import trimesh
 
+from service.engine import kernels
 from service.engine.mapping import file_sha256
 from service.engine.reference import Reference
 from service.gallery.gallery_file import load_gallery
@@ -108,6 +109,7 @@ def test_health_names_the_model_providers_and_references(api, server, seeded):
     assert body["model"]["sha256"] == file_sha256(server.settings.model.path)
     assert body["model"]["path"] == str(server.settings.model.path)
     assert "CPUExecutionProvider" in body["providers"]
+    assert body["loops"] == ("compiled" if kernels.AVAILABLE else "numpy")  # the same venv
     assert body["references"] == len(seeded) > 0
     assert api.get("/v2/health/live").json() == {"live": True}
     ready = api.get("/v2/health/ready")

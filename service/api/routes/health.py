@@ -8,6 +8,7 @@ from pydantic import BaseModel
 from service.api import auth
 from service.api.dependencies import LoadingCatalogDep, LoadingDep, SettingsDep
 from service.api.schemas import Health, ModelIdentity
+from service.engine import kernels
 
 router = APIRouter(tags=["health"])
 
@@ -38,6 +39,7 @@ async def health(
         auth=auth.mode(settings.auth),
         model=ModelIdentity(path=str(mapper.path), sha256=mapper.model_hash),
         providers=mapper.providers,
+        loops="compiled" if kernels.switch.enabled else "numpy",
         references=len(catalog.engine),
         detail=loading.detail or loading.unreachable,
     )
