@@ -15,6 +15,9 @@ Told where the camera was (``viewpoint``), the pairs of the last, precise iterat
 reference samples that face away from it: a depth camera sees no surface that turns its back
 to it, but across a thin wall the nearest sample is as often the far side's
 (docs/decisions.md#refine).
+
+Where numba is installed, each start runs as one compiled loop of the same arithmetic
+(``kernels.refine``; docs/decisions.md#compiled-loops); the numpy loops below run otherwise.
 """
 
 from __future__ import annotations
@@ -268,7 +271,7 @@ def icp_many(
     Each start's refined rotation, translation and the iterations it ran. One start is
     refined by ``icp``: its arrays of one pose cost less than the stacks' of one."""
     scene = np.asarray(scene, np.float64)
-    if kernels.switch.enabled:  # each start in one compiled loop
+    if kernels.switch.enabled:  # each start in one compiled loop (decisions.md#compiled-loops)
         scene = np.ascontiguousarray(scene)
         return [
             _compiled(scene if scene.ndim == 2 else scene[h], s, tolerance_rad, tolerance)

@@ -19,6 +19,9 @@ fit). Their product ranks hypotheses of every candidate part on one scale
 
 ``Occupancy`` answers "is there an observed point near here" for thousands of points at once:
 the observed points' voxels and their neighbours, in a dense grid over the observation.
+
+Where numba is installed, distances, ``fit`` and ``coverage`` run as compiled loops of the same
+arithmetic (``kernels``; docs/decisions.md#compiled-loops).
 """
 
 from __future__ import annotations
