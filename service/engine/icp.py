@@ -36,11 +36,12 @@ from service.engine.tuning import BACK_FACING, BEHIND, CLOSE, CLOSE_RAD, SURFACE
 
 TUKEY = 4.685  # Tukey's constant: 95 % efficiency on Gaussian residuals
 DAMPING = 1e-6  # relative to the system's trace
+# what the compiled loop is told of these (numba's cache would not see them change elsewhere)
+TUNED = (BACK_FACING, CLOSE, CLOSE_RAD, TUKEY, DAMPING)
 DIAGONAL = np.arange(6)
 # the cross-product matrix's entries: K[r, c] = sign * k[axis]
 CROSS_ROWS, CROSS_COLS = np.array([0, 0, 1, 1, 2, 2]), np.array([1, 2, 0, 2, 0, 1])
 CROSS_AXES, CROSS_SIGNS = np.array([2, 1, 2, 0, 1, 0]), np.array([-1.0, 1, 1, -1, -1, 1])
-NO_CAMERA = np.zeros(3)  # the compiled loop's viewpoint where none is told
 
 
 @dataclass(frozen=True)
@@ -365,11 +366,9 @@ def _compiled(
         tolerance_rad,
         tolerance,
         told,
-        np.ascontiguousarray(start.viewpoint, np.float64) if told else NO_CAMERA,
+        np.ascontiguousarray(start.viewpoint, np.float64) if told else kernels.NO_CAMERA,
         start.surface.compiled,
-        BACK_FACING,
-        CLOSE,
-        CLOSE_RAD,
+        TUNED,
     )
     return rotation, translation, done
 

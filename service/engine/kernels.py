@@ -32,10 +32,8 @@ except ImportError:  # the numpy twins run instead
     NUMBA_VERSION, njit = None, None
 
 AVAILABLE = njit is not None
-TUKEY = 4.685  # as icp.TUKEY
-DAMPING = 1e-6  # as icp.DAMPING
 FIELD, NEAREST, FACING = 0, 1, 2  # ``distances``'s lookups, as verification.Lookup
-NO_CAMERA = np.zeros(3)  # ``_nearest``'s camera where none is told
+NO_CAMERA = np.zeros(3)  # the camera where none is told (``refine``'s, ``_nearest``'s)
 
 
 class _Switch:
@@ -78,8 +76,9 @@ def warm() -> None:
     field = (np.full(3, -1.5), 0.5, np.array([7, 7, 7], np.int64), np.zeros(343, np.uint16))
     surface = (*field, points, points.copy(), neighbours, squares, offsets)
     pose = (np.eye(3), np.zeros(3))
+    tuned = (0.2, 0.5, 0.01, 4.685, 1e-6)  # as icp.TUNED
     for told in (False, True):
-        refine(points, *pose, 0.01, 0.5, 2, 5e-4, 0.05, told, np.ones(3), surface, 0.2, 0.5, 0.01)
+        refine(points, *pose, 0.01, 0.5, 2, 5e-4, 0.05, told, np.ones(3), surface, tuned)
     poses = (np.eye(3)[None], np.zeros((1, 3)))
     for lookup in (FIELD, NEAREST, FACING):
         distances(points, lookup, surface, 0.1, 0.1)
@@ -218,13 +217,12 @@ def refine(
     has_camera,
     viewpoint,
     surface,
-    back_facing,
-    close,
-    close_rad,
+    tuned,
 ):
     """One start of ``icp.icp``: the refined rotation, translation and the iterations run.
-    ``surface``: ``Surface.compiled``."""
+    ``surface``: ``Surface.compiled``; ``tuned``: ``icp.TUNED``, the loop's constants."""
     points, normals = surface[4], surface[5]
+    back_facing, close, close_rad, tukey, damping = tuned
     count = scene.shape[0]
     rotation, translation = rotation.copy(), translation.copy()
     model = np.empty((count, 3))
@@ -272,7 +270,7 @@ def refine(
                 kept += 1
         if kept < 6:
             break
-        scale = TUKEY * max(1.4826 * _median(size, kept), noise)
+        scale = tukey * max(1.4826 * _median(size, kept), noise)
         system, right = np.zeros((6, 6)), np.zeros(6)
         for j in range(kept):
             u = residual[j] / scale
@@ -283,11 +281,11 @@ def refine(
                     right[a] += weighted * residual[j]
                     for b in range(6):
                         system[a, b] += weighted * rows[j, b]
-        damping = DAMPING * (
+        damped = damping * (
             system[0, 0] + system[1, 1] + system[2, 2] + system[3, 3] + system[4, 4] + system[5, 5]
         )
         for a in range(6):
-            system[a, a] += damping + 1e-12
+            system[a, a] += damped + 1e-12
         step = -_solve(system, right)
         turned = math.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2])
         turn = np.eye(3)  # Rodrigues, as icp.rotation_vector
