@@ -87,6 +87,15 @@ def warm() -> None:
     covered(points[None], *poses, np.zeros(3), 1.0, np.array([2, 2, 2]), np.array([9, 3, 1]), grid)
 
 
+def _inline(function):
+    """A helper compiled into each loop that calls it. Its arrays come unpacked from the
+    surface's tuple once a loop: an array taken from a tuple a point costs its reference
+    counting a point, six times the arithmetic (docs/decisions.md#compiled-loops)."""
+    if not AVAILABLE:
+        return function
+    return njit(nogil=True, inline="always")(function)
+
+
 def _compiled(function):
     """``function`` compiled on its first call and cached on disk (in ``__pycache__``, or
     ``NUMBA_CACHE_DIR``); where no cache can be written, compiled anew in each process."""
@@ -98,11 +107,11 @@ def _compiled(function):
         return njit(nogil=True)(function)
 
 
-@_compiled
-def _field(x, y, z, surface):
+@_inline
+def _field(x, y, z, origin, voxel, shape, cells):
     """The distance field's sample for one point (``DistanceField.lookup``): the voxel's
-    rounded index, clipped onto the grid (NaN to voxel 0). ``surface``: ``Surface.compiled``."""
-    origin, voxel, shape, cells = surface[0], surface[1], surface[2], surface[3]
+    rounded index, clipped onto the grid (NaN to voxel 0); the field's arrays are the first
+    four of ``Surface.compiled``."""
     i = np.rint((x - origin[0]) / voxel)
     j = np.rint((y - origin[1]) / voxel)
     k = np.rint((z - origin[2]) / voxel)
@@ -172,18 +181,13 @@ def _solve(system, right):
     return right
 
 
-@_compiled
-def _nearest(x, y, z, first, surface, has_camera, camera, camera_square, back_facing):
+@_inline
+def _nearest(
+    x, y, z, first, points, normals, neighbours, squares, offsets, has_camera, camera, sq, back
+):
     """``Surface.nearest`` for one point: the nearest of ``first``'s neighbours, ordered by
-    |q|^2 - 2 p.q as there; told the camera, the nearest of those not facing away from it
-    (the nearest of all where every one does)."""
-    points, normals, neighbours, squares, offsets = (
-        surface[4],
-        surface[5],
-        surface[6],
-        surface[7],
-        surface[8],
-    )
+    |q|^2 - 2 p.q as there; told the camera (``sq``: its |c|^2), the nearest of those not
+    facing away from it by more than ``back`` (the nearest of all where every one does)."""
     best, best_square, any_best, any_square = -1, np.inf, -1, np.inf
     for n in range(neighbours.shape[1]):
         c = neighbours[first, n]
@@ -196,8 +200,8 @@ def _nearest(x, y, z, first, surface, has_camera, camera, camera_square, back_fa
             toward = camera[0] * normals[c, 0] + camera[1] * normals[c, 1]
             toward = toward + camera[2] * normals[c, 2] - offsets[c]
             sight = camera[0] * points[c, 0] + camera[1] * points[c, 1]
-            sight = (sight + camera[2] * points[c, 2]) * -2.0 + squares[c] + camera_square
-            if toward < -back_facing * math.sqrt(max(sight, 0.0)):
+            sight = (sight + camera[2] * points[c, 2]) * -2.0 + squares[c] + sq
+            if toward < -back * math.sqrt(max(sight, 0.0)):
                 continue
         if square < best_square:
             best, best_square = c, square
@@ -221,7 +225,7 @@ def refine(
 ):
     """One start of ``icp.icp``: the refined rotation, translation and the iterations run.
     ``surface``: ``Surface.compiled``; ``tuned``: ``icp.TUNED``, the loop's constants."""
-    points, normals = surface[4], surface[5]
+    origin, voxel, shape, cells, points, normals, neighbours, squares, offsets = surface
     back_facing, close, close_rad, tukey, damping = tuned
     count = scene.shape[0]
     rotation, translation = rotation.copy(), translation.copy()
@@ -253,9 +257,23 @@ def refine(
         kept = 0
         for i in range(count):
             x, y, z = model[i, 0], model[i, 1], model[i, 2]
-            c = _field(x, y, z, surface)
+            c = _field(x, y, z, origin, voxel, shape, cells)
             if precise:
-                c = _nearest(x, y, z, c, surface, told, camera, camera_square, back_facing)
+                c = _nearest(
+                    x,
+                    y,
+                    z,
+                    c,
+                    points,
+                    normals,
+                    neighbours,
+                    squares,
+                    offsets,
+                    told,
+                    camera,
+                    camera_square,
+                    back_facing,
+                )
             o0, o1, o2 = x - points[c, 0], y - points[c, 1], z - points[c, 2]
             if o0 * o0 + o1 * o1 + o2 * o2 < gate_square:
                 n0, n1, n2 = normals[c, 0], normals[c, 1], normals[c, 2]
@@ -317,33 +335,27 @@ def refine(
     return rotation, translation, done
 
 
-@_compiled
-def _sample(x, y, z, lookup, surface, behind):
-    """The sample one point is measured to (``distances``)."""
-    c = _field(x, y, z, surface)
-    if lookup == NEAREST:
-        return _nearest(x, y, z, c, surface, False, NO_CAMERA, 0.0, 0.0)
-    if lookup == FACING:  # the nearest the point is not behind (the nearest if behind all)
-        points, normals, neighbours = surface[4], surface[5], surface[6]
-        best, best_square, any_best, any_square = -1, np.inf, -1, np.inf
-        for n in range(neighbours.shape[1]):
-            k = neighbours[c, n]
-            o0, o1, o2 = x - points[k, 0], y - points[k, 1], z - points[k, 2]
-            square = o0 * o0 + o1 * o1 + o2 * o2
-            if square < any_square:
-                any_best, any_square = k, square
-            if o0 * normals[k, 0] + o1 * normals[k, 1] + o2 * normals[k, 2] < -behind:
-                continue
-            if square < best_square:
-                best, best_square = k, square
-        return best if best >= 0 else any_best
-    return c
+@_inline
+def _facing(x, y, z, first, points, normals, neighbours, behind):
+    """The nearest of ``first``'s neighbours the point is not ``behind`` (the nearest if
+    behind them all)."""
+    best, best_square, any_best, any_square = -1, np.inf, -1, np.inf
+    for n in range(neighbours.shape[1]):
+        k = neighbours[first, n]
+        o0, o1, o2 = x - points[k, 0], y - points[k, 1], z - points[k, 2]
+        square = o0 * o0 + o1 * o1 + o2 * o2
+        if square < any_square:
+            any_best, any_square = k, square
+        if o0 * normals[k, 0] + o1 * normals[k, 1] + o2 * normals[k, 2] < -behind:
+            continue
+        if square < best_square:
+            best, best_square = k, square
+    return best if best >= 0 else any_best
 
 
-@_compiled
-def _patch(x, y, z, c, surface, patch):
+@_inline
+def _patch(x, y, z, c, points, normals, patch):
     """One point's distance to sample ``c``'s tangent patch (``patch_distance``)."""
-    points, normals = surface[4], surface[5]
     o0, o1, o2 = x - points[c, 0], y - points[c, 1], z - points[c, 2]
     along = o0 * normals[c, 0] + o1 * normals[c, 1] + o2 * normals[c, 2]
     across = math.sqrt(max(o0 * o0 + o1 * o1 + o2 * o2 - along * along, 0.0))
@@ -354,12 +366,31 @@ def _patch(x, y, z, c, surface, patch):
 def distances(model, lookup, surface, behind, patch):
     """``verification.surface_distance`` on ``model`` (P, 3): each point's distance to the
     tangent patch of its sample (``FIELD``, ``NEAREST`` or ``FACING``), and the sample."""
+    origin, voxel, shape, cells, points, normals, neighbours, squares, offsets = surface
     count = model.shape[0]
     distance, sample = np.empty(count), np.empty(count, np.int64)
     for i in range(count):
         x, y, z = model[i, 0], model[i, 1], model[i, 2]
-        c = _sample(x, y, z, lookup, surface, behind)
-        distance[i] = _patch(x, y, z, c, surface, patch)
+        c = _field(x, y, z, origin, voxel, shape, cells)
+        if lookup == NEAREST:
+            c = _nearest(
+                x,
+                y,
+                z,
+                c,
+                points,
+                normals,
+                neighbours,
+                squares,
+                offsets,
+                False,
+                NO_CAMERA,
+                0.0,
+                0.0,
+            )
+        elif lookup == FACING:
+            c = _facing(x, y, z, c, points, normals, neighbours, behind)
+        distance[i] = _patch(x, y, z, c, points, normals, patch)
         sample[i] = c
     return distance, sample
 
@@ -368,6 +399,7 @@ def distances(model, lookup, surface, behind, patch):
 def shares(observed, rotations, translations, tolerance, lookup, surface, behind, patch):
     """``verification.fit``: (H,) the share of ``observed`` (S, 3) within ``tolerance`` of the
     surface at each pose, the points carried into the model frame one at a time."""
+    origin, voxel, shape, cells, points, normals, neighbours, squares, offsets = surface
     out = np.empty(len(rotations))
     for h in range(len(rotations)):
         r, t = rotations[h], translations[h]
@@ -378,8 +410,26 @@ def shares(observed, rotations, translations, tolerance, lookup, surface, behind
             x = d0 * r[0, 0] + d1 * r[1, 0] + d2 * r[2, 0]
             y = d0 * r[0, 1] + d1 * r[1, 1] + d2 * r[2, 1]
             z = d0 * r[0, 2] + d1 * r[1, 2] + d2 * r[2, 2]
-            c = _sample(x, y, z, lookup, surface, behind)
-            if _patch(x, y, z, c, surface, patch) < tolerance:
+            c = _field(x, y, z, origin, voxel, shape, cells)
+            if lookup == NEAREST:
+                c = _nearest(
+                    x,
+                    y,
+                    z,
+                    c,
+                    points,
+                    normals,
+                    neighbours,
+                    squares,
+                    offsets,
+                    False,
+                    NO_CAMERA,
+                    0,
+                    0,
+                )
+            elif lookup == FACING:
+                c = _facing(x, y, z, c, points, normals, neighbours, behind)
+            if _patch(x, y, z, c, points, normals, patch) < tolerance:
                 within += 1
         out[h] = within / observed.shape[0]
     return out
