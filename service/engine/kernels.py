@@ -85,6 +85,8 @@ def warm() -> None:
         shares(points, *poses, 0.1, lookup, surface, 0.1, 0.1)
     grid = np.ones(27, bool)
     covered(points[None], *poses, np.zeros(3), 1.0, np.array([2, 2, 2]), np.array([9, 3, 1]), grid)
+    pixels, steps = np.arange(16), np.array([[0, 1], [1, 0]], np.intp)  # a 4 x 4 grid
+    grid_labels(pixels // 4, pixels % 4, pixels, 4, 4, points, squares, offsets, steps, squares[:2])
 
 
 def _inline(function):
@@ -453,3 +455,49 @@ def covered(expected, rotations, translations, low, voxel, last, strides, grid):
             near += grid[flat]
         out[h] = near / expected.shape[1]
     return out
+
+
+@_compiled
+def _root(parent, node):
+    """The root of ``node``'s tree, halving the path on the way."""
+    while parent[node] != node:
+        parent[node] = parent[parent[node]]
+        node = parent[node]
+    return node
+
+
+@_compiled
+def grid_labels(rows, columns, where, width, height, points, reach, slack, offsets, apart):
+    """``segments.grid_segments``: (N,) a component label per point of an organized frame,
+    each linked to its neighbour at each of ``offsets`` (K, 2: down, right; ``apart``: their
+    lengths in pixels) closer than ``reach`` x ``apart`` plus ``slack`` (each point's); the
+    labels numbered in the order of each component's first point, as scipy's. ``where``: the
+    point on each pixel of the grid (``height`` x ``width``, flat), -1 where none is."""
+    count = len(rows)
+    parent = np.arange(count)
+    for i in range(count):
+        row, column = rows[i], columns[i]
+        for k in range(offsets.shape[0]):
+            down, right = offsets[k, 0], offsets[k, 1]
+            if row + down >= height or column + right >= width or column + right < 0:
+                continue
+            other = where[(row + down) * width + column + right]
+            if other < 0:
+                continue
+            d0 = points[i, 0] - points[other, 0]
+            d1 = points[i, 1] - points[other, 1]
+            d2 = points[i, 2] - points[other, 2]
+            gap = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)  # as normalize.lengths
+            if gap < reach[i] * apart[k] + slack[i]:
+                a, b = _root(parent, i), _root(parent, other)
+                if a != b:
+                    parent[max(a, b)] = min(a, b)
+    labels = np.full(count, -1, np.int32)
+    found = 0
+    for i in range(count):
+        root = _root(parent, i)
+        if labels[root] < 0:
+            labels[root] = found
+            found += 1
+        labels[i] = labels[root]
+    return labels

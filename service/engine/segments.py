@@ -11,6 +11,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from service.engine import kernels
 from service.engine.frame import Frame
 from service.engine.normalize import lengths
 from service.engine.surroundings import groups
@@ -18,6 +19,7 @@ from service.engine.tuning import LINK_FOOTPRINTS, LINK_NOISE
 
 # neighbouring pixels linked: right, down, the diagonals, and two along (across a missing one)
 OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1), (0, 2), (2, 0))
+GRID_OFFSETS, APART = np.array(OFFSETS, dtype=np.intp), np.hypot(*np.array(OFFSETS).T)
 LINKS = (LINK_FOOTPRINTS, LINK_NOISE)  # how near neighbours lie to be joined: footprints, range
 
 
@@ -44,6 +46,17 @@ def grid_segments(
     """Connected components of the organized frame's pixels, a pixel linked to each of its
     ``OFFSETS`` neighbours closer than ``links[0]`` of its own footprint (per pixel of
     offset) plus ``links[1]`` of its range."""
+    if kernels.switch.enabled:  # linked and joined in one loop (decisions.md#compiled-loops)
+        footprints, noise = links
+        rows, columns = frame.cells()
+        height, width = frame.grid_shape
+        where = np.full(height * width, -1, dtype=np.intp)
+        where[rows * width + columns] = np.arange(len(frame))
+        reach = footprints * (angle * frame.step * ranges)
+        points = np.ascontiguousarray(frame.points)
+        return kernels.grid_labels(
+            rows, columns, where, width, height, points, reach, noise * ranges, GRID_OFFSETS, APART
+        )
     first, second = grid_links(frame, angle, ranges, links)
     return components(len(frame), first, second)
 

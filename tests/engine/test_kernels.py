@@ -259,3 +259,27 @@ def test_where_no_cache_can_be_written_the_loops_compile_in_each_process():
     )
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.split() == ["True", "True"], done.stdout
+
+
+def test_compiled_segments_are_numpys(both):
+    """Two boxes touching and one apart on a table, at full resolution and every other pixel:
+    the same segment for every point, numbered alike."""
+    pytest.importorskip("open3d")
+    from service.engine.segments import segments
+    from service.engine.supports import set_aside_supports
+    from tests.frames import box, frame_of, resting, shoot, spin, table
+
+    block = box((0.08, 0.06, 0.05), (0.0, 0.0, 0.0))
+    parts = [
+        (block, *resting(block, spin(0), -0.04, 0.0)),
+        (block, *resting(block, spin(90), 0.0395, 0.0)),  # touching the first
+        (block, *resting(block, spin(30), 0.0, 0.15)),
+    ]
+    frame = frame_of(shoot(parts, table()))
+    angle = frame.pixel_angle()
+    keep, _ = set_aside_supports(frame, angle, np.array([0.05]), np.random.default_rng(0))
+    rest = frame.take(keep)
+    for grid in (rest, rest.every(2)):
+        labels = both(lambda g=grid: segments(g, angle))
+        np.testing.assert_array_equal(labels[0], labels[1])
+        assert labels[0].max() >= 1  # the parts apart from each other
