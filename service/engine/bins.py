@@ -35,11 +35,14 @@ class Band:
 
     def holds(self, points: np.ndarray) -> np.ndarray:
         """(N,) which of ``points`` lie in the band."""
-        height = points @ self.plane[:3] - self.plane[3]
-        across = np.abs(points @ self.axes - self.centre)
-        within = np.all(across <= self.half + self.outside, axis=1)
-        deep_inside = np.all(across < self.half - self.inside, axis=1)
-        return within & ~deep_inside & (height > self.below)
+        along = points @ self.axes
+        within = points @ self.plane[:3] - self.plane[3] > self.below
+        deep_inside = np.ones(len(points), dtype=bool)
+        for k in range(2):  # column by column: all() along rows of two is numpy's slow path
+            across = np.abs(along[:, k] - self.centre[k])
+            within &= across <= self.half[k] + self.outside
+            deep_inside &= across < self.half[k] - self.inside
+        return within & ~deep_inside
 
 
 def outline(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -87,6 +87,7 @@ def warm() -> None:
     covered(points[None], *poses, np.zeros(3), 1.0, np.array([2, 2, 2]), np.array([9, 3, 1]), grid)
     pixels, steps = np.arange(16), np.array([[0, 1], [1, 0]], np.intp)  # a 4 x 4 grid
     grid_labels(pixels // 4, pixels % 4, pixels, 4, 4, points, squares, offsets, steps, squares[:2])
+    msac_votes(points, points, squares, squares)
 
 
 def _inline(function):
@@ -501,3 +502,19 @@ def grid_labels(rows, columns, where, width, height, points, reach, slack, offse
             found += 1
         labels[i] = labels[root]
     return labels
+
+
+@_compiled
+def msac_votes(sample, normals, offsets, slack):
+    """``supports.msac_votes``: (P,) each plane's MSAC vote over the ``sample`` (S, 3), each
+    point's 1 - (|n . p - d| / its ``slack``)^2, at least 0. The planes innermost, each its
+    own sum: a loop the compiler runs several planes at a time, without a branch."""
+    planes = normals.shape[0]
+    n0, n1, n2 = normals[:, 0].copy(), normals[:, 1].copy(), normals[:, 2].copy()
+    votes = np.zeros(planes)
+    for i in range(sample.shape[0]):
+        x, y, z, scale = sample[i, 0], sample[i, 1], sample[i, 2], 1.0 / slack[i]
+        for j in range(planes):
+            u = (x * n0[j] + y * n1[j] + z * n2[j] - offsets[j]) * scale
+            votes[j] += max(1.0 - u * u, 0.0)
+    return votes

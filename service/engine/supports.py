@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from service.engine import kernels
 from service.engine.bins import Band, bin_band
 from service.engine.frame import Frame
 from service.engine.normalize import distances, lengths, subsample
@@ -379,27 +380,35 @@ def largest_plane(
         return None
     normals = normals[good] / length[good, None]
     offsets = np.einsum("ij,ij->i", normals, triples[good, 0])
-    # each point's vote falls off with its distance (MSAC): a plane tilted through two levels
-    # (a bin's floor 1 cm over the table) holds both within the tolerance, but loosely
-    # 1 - (|n . p - d| / slack)^2, at least 0: in place on one (sample, planes) array, in
-    # float32 (half the memory streamed; the same plane chosen every time measured:
-    # docs/decisions.md#supports-on-a-coarser-copy)
+    best = int(msac_votes(sample, normals, offsets, slack).argmax())
+    on = np.flatnonzero(np.abs(points @ normals[best] - offsets[best]) < tolerance)
+    if len(on) < 3:
+        return None
+    inliers = points[on]
+    centre = inliers.mean(axis=0)
+    normal = np.linalg.svd(inliers - centre, full_matrices=False)[2][2]
+    plane = np.append(normal, normal @ centre)
+    on = np.flatnonzero(np.abs(points @ plane[:3] - plane[3]) < tolerance)
+    return plane, on
+
+
+def msac_votes(
+    sample: np.ndarray, normals: np.ndarray, offsets: np.ndarray, slack: np.ndarray
+) -> np.ndarray:
+    """(P,) each plane's vote: each point's falls off with its distance (MSAC), 1 - (|n . p -
+    d| / slack)^2, at least 0; a plane tilted through two levels (a bin's floor 1 cm over the
+    table) holds both within the tolerance, but loosely. Compiled, one loop in float64;
+    else in place on one (sample, planes) array in float32, half the memory streamed (the
+    same plane chosen every time measured: docs/decisions.md#supports-on-a-coarser-copy)."""
+    if kernels.switch.enabled:
+        return kernels.msac_votes(sample, normals, offsets, slack)
     near = sample.astype(np.float32) @ normals.T.astype(np.float32)
     near -= offsets.astype(np.float32)
     np.abs(near, out=near)
     near /= slack.astype(np.float32)[:, None]
     np.square(near, out=near)
     np.subtract(1, near, out=near)
-    votes = np.maximum(near, 0, out=near).sum(axis=0)
-    best = int(votes.argmax())
-    on = np.flatnonzero(np.abs(points @ normals[best] - offsets[best]) < tolerance)
-    if len(on) < 3:
-        return None
-    centre = points[on].mean(axis=0)
-    normal = np.linalg.svd(points[on] - centre, full_matrices=False)[2][2]
-    plane = np.append(normal, normal @ centre)
-    on = np.flatnonzero(np.abs(points @ plane[:3] - plane[3]) < tolerance)
-    return plane, on
+    return np.maximum(near, 0, out=near).sum(axis=0)
 
 
 def apply_supports(frame: Frame, supports: list[Support], angle: float) -> np.ndarray:

@@ -283,3 +283,22 @@ def test_compiled_segments_are_numpys(both):
         labels = both(lambda g=grid: segments(g, angle))
         np.testing.assert_array_equal(labels[0], labels[1])
         assert labels[0].max() >= 1  # the parts apart from each other
+
+
+def test_compiled_msac_votes_choose_numpys_plane(both):
+    """A table's points and a box's face: the same plane wins, by votes within float32's."""
+    from service.engine.supports import msac_votes
+
+    rng = np.random.default_rng(5)
+    table = np.column_stack([rng.uniform(-0.3, 0.3, (1500, 2)), rng.normal(0, 1e-3, 1500)])
+    face = np.column_stack([rng.uniform(-0.05, 0.05, (500, 2)), np.full(500, 0.04)])
+    sample = np.concatenate([table, face])
+    triples = sample[rng.integers(0, len(sample), (200, 3))]
+    normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    offsets = np.einsum("ij,ij->i", normals, triples[:, 0])
+    slack = np.full(len(sample), 3e-3)
+    votes = both(lambda: msac_votes(sample, normals, offsets, slack))
+    assert votes[0].argmax() == votes[1].argmax()
+    np.testing.assert_allclose(votes[0], votes[1], rtol=1e-4, atol=1e-2)
+    assert votes[0].max() > 1000  # the table's plane, through most of the sample
