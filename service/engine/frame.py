@@ -19,6 +19,7 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import cKDTree
 
+from service.engine import kernels
 from service.engine.normalize import distances, lengths, subsample
 from service.engine.tuning import (
     BLOCKS_HELD,
@@ -117,19 +118,13 @@ class Frame:
             first, apart = first[near], gap[near] / self.step
         if len(first) < 16:
             return spacing_angle(self.points, self.viewpoint)
-        ends = []
-        for chosen in (first, first + 1):
-            rays = np.take(points, chosen, axis=0) - self.viewpoint
-            rays /= lengths(rays)[:, None]  # each ray's length: its range
-            ends.append(rays)
-        cosine = np.einsum("ij,ij->i", *ends)
-        finite = np.isfinite(cosine)  # a point at the camera itself has no ray
+        angles = pair_angles(points, first, self.viewpoint)
+        finite = np.isfinite(angles)  # a point at the camera itself has no ray
         if not finite.all():
-            cosine = cosine[finite]
+            angles = angles[finite]
             apart = None if apart is None else apart[finite]
-            if len(cosine) < 16:
+            if len(angles) < 16:
                 return spacing_angle(self.points, self.viewpoint)
-        angles = np.arccos(np.clip(cosine, -1.0, 1.0))
         if apart is None:
             return float(np.median(angles)) / self.step
         # a ray's angle does not depend on the depth: no outliers, and the gaps of a pattern
@@ -268,6 +263,23 @@ class Frame:
         ranges = distances(self.points, self.viewpoint)
         ranges.flags.writeable = False
         return ranges
+
+
+def pair_angles(points: np.ndarray, first: np.ndarray, viewpoint: np.ndarray) -> np.ndarray:
+    """(K,) the angle between the rays from ``viewpoint`` to the points ``first`` and ``first +
+    1``; NaN where a point lies at the viewpoint. The cosines in one compiled pass where it
+    can be (``kernels.pair_cosines``)."""
+    if kernels.switch.enabled and points.dtype == np.float64 and points.flags.c_contiguous:
+        cosine = kernels.pair_cosines(points, first, np.asarray(viewpoint, np.float64))
+    else:
+        ends = []
+        for chosen in (first, first + 1):
+            rays = np.take(points, chosen, axis=0) - viewpoint
+            with np.errstate(invalid="ignore", divide="ignore"):
+                rays /= lengths(rays)[:, None]  # each ray's length: its range
+            ends.append(rays)
+        cosine = np.einsum("ij,ij->i", *ends)
+    return np.arccos(np.clip(cosine, -1.0, 1.0))
 
 
 def inside_box(points: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:

@@ -88,6 +88,8 @@ def warm() -> None:
     pixels, steps = np.arange(16), np.array([[0, 1], [1, 0]], np.intp)  # a 4 x 4 grid
     grid_labels(pixels // 4, pixels % 4, pixels, 4, 4, points, squares, offsets, steps, squares[:2])
     msac_votes(points, points, squares, squares)
+    squared_distances(points, np.zeros(3))
+    pair_cosines(points, rows[:4], np.zeros(3))
 
 
 def _inline(function):
@@ -518,3 +520,33 @@ def msac_votes(sample, normals, offsets, slack):
             u = (x * n0[j] + y * n1[j] + z * n2[j] - offsets[j]) * scale
             votes[j] += max(1.0 - u * u, 0.0)
     return votes
+
+
+@_compiled
+def squared_distances(points, centre):
+    """``normalize.squared_distances`` of C-ordered float64 ``points``: in one pass, the same
+    sums in the same order."""
+    out = np.empty(points.shape[0])
+    c0, c1, c2 = centre[0], centre[1], centre[2]
+    for i in range(points.shape[0]):
+        x, y, z = points[i, 0] - c0, points[i, 1] - c1, points[i, 2] - c2
+        out[i] = x * x + y * y + z * z
+    return out
+
+
+@_compiled
+def pair_cosines(points, first, viewpoint):
+    """``frame.pair_cosines``: (K,) the cosine between the rays from ``viewpoint`` to the
+    points ``first`` and ``first + 1``, each made a unit vector; NaN where a point lies at the
+    viewpoint. The same to the bit: summed in einsum's order."""
+    out = np.empty(first.shape[0])
+    v0, v1, v2 = viewpoint[0], viewpoint[1], viewpoint[2]
+    for k in range(first.shape[0]):
+        a, b = first[k], first[k] + 1
+        a0, a1, a2 = points[a, 0] - v0, points[a, 1] - v1, points[a, 2] - v2
+        b0, b1, b2 = points[b, 0] - v0, points[b, 1] - v1, points[b, 2] - v2
+        na = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        nb = np.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+        a0, a1, a2, b0, b1, b2 = a0 / na, a1 / na, a2 / na, b0 / nb, b1 / nb, b2 / nb
+        out[k] = (a0 * b0 + a2 * b2) + a1 * b1
+    return out

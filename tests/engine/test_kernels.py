@@ -261,9 +261,10 @@ def test_where_no_cache_can_be_written_the_loops_compile_in_each_process():
     assert done.stdout.split() == ["True", "True"], done.stdout
 
 
-def test_compiled_segments_are_numpys(both):
+def test_compiled_frame_steps_are_numpys(both):
     """Two boxes touching and one apart on a table, at full resolution and every other pixel:
-    the same segment for every point, numbered alike."""
+    the same pixel angle and ranges to the bit, the same segment for every point, numbered
+    alike."""
     pytest.importorskip("open3d")
     from service.engine.segments import segments
     from service.engine.supports import set_aside_supports
@@ -275,7 +276,12 @@ def test_compiled_segments_are_numpys(both):
         (block, *resting(block, spin(90), 0.0395, 0.0)),  # touching the first
         (block, *resting(block, spin(30), 0.0, 0.15)),
     ]
-    frame = frame_of(shoot(parts, table()))
+    shot = shoot(parts, table())
+    angles = both(lambda: [frame_of(shot).pixel_angle(), frame_of(shot).every(2).pixel_angle()])
+    assert angles[0] == angles[1]
+    ranges = both(lambda: frame_of(shot).ranges())
+    np.testing.assert_array_equal(ranges[0], ranges[1])
+    frame = frame_of(shot)
     angle = frame.pixel_angle()
     keep, _ = set_aside_supports(frame, angle, np.array([0.05]), np.random.default_rng(0))
     rest = frame.take(keep)
