@@ -1,11 +1,13 @@
-"""Refinement's and verification's innermost loops compiled (numba, the ``fast`` extra).
+"""The innermost loops compiled (numba, the ``fast`` extra): refinement's, verification's,
+and a frame's first steps.
 
 ICP and verification ask the same few numpy steps thousands of times a frame on a few hundred
-points, where each step's call costs as much as its arithmetic. Here each is one loop over the
-points, compiled once (cached on disk) and run without the interpreter: a frame's ICP 5.5x
-faster, to the same poses within 1e-7 and the same iterations; ``Engine.detect`` a third
-faster, with the same detections (docs/decisions.md#compiled-loops). Each does its numpy
-twin's arithmetic, and ``tests/engine/test_kernels.py`` holds the two together:
+points, where each step's call costs as much as its arithmetic; a frame's first steps read its
+300,000 points in a dozen passes each. Here each is one loop over the points, compiled once
+(cached on disk) and run without the interpreter: a frame's ICP 5.5x faster, to the same poses
+within 1e-7 and the same iterations; ``Engine.detect`` half the time, with the same detections
+(docs/decisions.md#compiled-loops). Each does its numpy twin's arithmetic, and
+``tests/engine/test_kernels.py`` holds the two together:
 
 - ``refine`` is one start of ``icp.icp``: the distance field's answer while far, the nearest
   of the sample's neighbours not facing away from the camera once close, Tukey-weighted
@@ -13,7 +15,15 @@ twin's arithmetic, and ``tests/engine/test_kernels.py`` holds the two together:
 - ``distances`` is ``verification.surface_distance``: the field's, the nearest or the facing
   sample, and the distance to its tangent patch;
 - ``shares`` and ``covered`` are ``verification.fit`` and ``verification.coverage``, each
-  pose's points carried one at a time.
+  pose's points carried one at a time;
+- ``squared_distances`` and ``pair_cosines``: a frame's ranges and the cosines its pixel angle
+  is the median of, the same to the bit;
+- ``msac_votes``: the supports' RANSAC votes, in float64 where numpy's are float32 (the same
+  plane chosen);
+- ``grid_labels``: an organized frame's segments, its neighbouring pixels linked and joined.
+
+The helpers are compiled into the loops that call them, and each loop unpacks a surface's
+arrays once: an array taken from a tuple a point is reference-counted a point.
 
 Without numba (``pip install .`` without ``[fast]``), or with ``DPC_ENGINE__COMPILED=false``,
 the numpy code runs instead.
@@ -58,8 +68,8 @@ def describe() -> str:
     if AVAILABLE:
         return "numpy loops (DPC_ENGINE__COMPILED=false)"
     return (
-        "numpy loops (numba is not installed: with pip install '.[fast]', /detect takes a "
-        "third less time)"
+        "numpy loops (numba is not installed: with pip install '.[fast]', /detect takes "
+        "half the time)"
     )
 
 
