@@ -48,7 +48,7 @@ def squared_distances(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
     time on a 1280 x 720 frame's points); in one compiled pass where it can be
     (``kernels``)."""
     if kernels.switch.enabled and points.dtype == np.float64 and points.flags.c_contiguous:
-        return kernels.squared_distances(points, np.asarray(centre, np.float64))
+        return kernels.squared_distances(points, np.ascontiguousarray(centre, np.float64))
     x = points[:, 0] - centre[0]
     y = points[:, 1] - centre[1]
     z = points[:, 2] - centre[2]

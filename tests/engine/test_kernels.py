@@ -205,8 +205,13 @@ from service.engine.icp import Start, icp_many
 from service.engine.verification import Occupancy, coverage, fit, surface_distance
 from tests.engine.test_surface import l_bracket, surface_of
 
+from service.engine.frame import Frame
+from service.engine.segments import segments
+from service.engine.supports import set_aside_supports
+
 kernels.warm()
-loops = (kernels.refine, kernels.distances, kernels.shares, kernels.covered)
+loops = (kernels.refine, kernels.distances, kernels.shares, kernels.covered, kernels.grid_labels,
+         kernels.msac_votes, kernels.squared_distances, kernels.pair_cosines)
 before = [len(loop.signatures) for loop in loops]
 bracket = surface_of(l_bracket())
 scene = (bracket.points[:300] @ Rotation.random(random_state=1).as_matrix().T).astype(np.float32)
@@ -219,13 +224,21 @@ for lookup in ("field", "nearest", "facing"):
     fit(bracket, scene, *poses, 0.01, lookup)
 occupancy = Occupancy.around(scene, 0.01, bracket.spacing)
 coverage(bracket.points[None, :100].repeat(2, 0), *poses, occupancy)
+v, u = np.mgrid[0:120, 0:160]  # a camera's frame: a square block before a wall
+rays = np.stack([(u - 79.5) / 130, (v - 59.5) / 130, np.ones(u.shape)], -1).reshape(-1, 3)
+depth = np.where((abs(u - 80) < 15) & (abs(v - 60) < 15), 0.9, 1.0).ravel()
+frame = Frame.of((rays * depth[:, None]).astype(np.float32), np.arange(len(rays)), (120, 160))
+angle = frame.pixel_angle()
+keep, _ = set_aside_supports(frame, angle, np.array([0.05]), np.random.default_rng(0))
+segments(frame.take(keep), angle)
+segments(frame.every(2), angle)
 print([len(loop.signatures) for loop in loops] == before, before)
 """
 
 
 def test_warming_compiles_every_loop_for_what_the_engine_passes():
     """``kernels.warm`` at a start leaves nothing to compile for a request's calls (float32
-    points, a camera or none, a scene a start), in a fresh process."""
+    points, a camera or none, a scene a start; a camera's frame), in a fresh process."""
     import subprocess
     import sys
 
