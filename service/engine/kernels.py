@@ -351,6 +351,22 @@ def refine(
 
 
 @_inline
+def _nearest_of(x, y, z, first, points, neighbours, squares):
+    """``Surface.nearest`` for one point, not told the camera: the nearest of ``first``'s
+    neighbours, ordered by |q|^2 - 2 p.q as there. ``_nearest`` untold, written out: a helper
+    that calls another is not compiled into the loop, and cost 3x (a point's lookup)."""
+    best, best_square = -1, np.inf
+    for n in range(neighbours.shape[1]):
+        c = neighbours[first, n]
+        square = squares[c] + points[c, 0] * (-2.0 * x)
+        square = square + points[c, 1] * (-2.0 * y)
+        square = square + points[c, 2] * (-2.0 * z)
+        if square < best_square:
+            best, best_square = c, square
+    return best
+
+
+@_inline
 def _facing(x, y, z, first, points, normals, neighbours, behind):
     """The nearest of ``first``'s neighbours the point is not ``behind`` (the nearest if
     behind them all)."""
@@ -388,21 +404,7 @@ def distances(model, lookup, surface, behind, patch):
         x, y, z = model[i, 0], model[i, 1], model[i, 2]
         c = _field(x, y, z, origin, voxel, shape, cells)
         if lookup == NEAREST:
-            c = _nearest(
-                x,
-                y,
-                z,
-                c,
-                points,
-                normals,
-                neighbours,
-                squares,
-                offsets,
-                False,
-                NO_CAMERA,
-                0.0,
-                0.0,
-            )
+            c = _nearest_of(x, y, z, c, points, neighbours, squares)
         elif lookup == FACING:
             c = _facing(x, y, z, c, points, normals, neighbours, behind)
         distance[i] = _patch(x, y, z, c, points, normals, patch)
@@ -427,21 +429,7 @@ def shares(observed, rotations, translations, tolerance, lookup, surface, behind
             z = d0 * r[0, 2] + d1 * r[1, 2] + d2 * r[2, 2]
             c = _field(x, y, z, origin, voxel, shape, cells)
             if lookup == NEAREST:
-                c = _nearest(
-                    x,
-                    y,
-                    z,
-                    c,
-                    points,
-                    normals,
-                    neighbours,
-                    squares,
-                    offsets,
-                    False,
-                    NO_CAMERA,
-                    0,
-                    0,
-                )
+                c = _nearest_of(x, y, z, c, points, neighbours, squares)
             elif lookup == FACING:
                 c = _facing(x, y, z, c, points, normals, neighbours, behind)
             if _patch(x, y, z, c, points, normals, patch) < tolerance:
