@@ -43,7 +43,7 @@ except ImportError:  # the numpy twins run instead
 
 AVAILABLE = njit is not None
 FIELD, NEAREST, FACING = 0, 1, 2  # ``distances``'s lookups, as verification.Lookup
-NO_CAMERA = np.zeros(3)  # the camera where none is told (``refine``'s, ``_nearest``'s)
+NO_CAMERA = np.zeros(3)  # the camera where none is told (``refine``'s)
 
 
 class _Switch:
@@ -458,7 +458,7 @@ def covered(expected, rotations, translations, low, voxel, last, strides, grid):
     return out
 
 
-@_compiled
+@_inline
 def _root(parent, node):
     """The root of ``node``'s tree, halving the path on the way."""
     while parent[node] != node:
