@@ -197,6 +197,14 @@ def _solve(system, right):
 
 
 @_inline
+def _order(x, y, z, c, points, squares):
+    """What ``Surface.nearest`` orders sample ``c`` by for the point: |q|^2 - 2 p.q."""
+    square = squares[c] + points[c, 0] * (-2.0 * x)
+    square = square + points[c, 1] * (-2.0 * y)
+    return square + points[c, 2] * (-2.0 * z)
+
+
+@_inline
 def _nearest(
     x, y, z, first, points, normals, neighbours, squares, offsets, has_camera, camera, sq, back
 ):
@@ -206,9 +214,7 @@ def _nearest(
     best, best_square, any_best, any_square = -1, np.inf, -1, np.inf
     for n in range(neighbours.shape[1]):
         c = neighbours[first, n]
-        square = squares[c] + points[c, 0] * (-2.0 * x)
-        square = square + points[c, 1] * (-2.0 * y)
-        square = square + points[c, 2] * (-2.0 * z)
+        square = _order(x, y, z, c, points, squares)
         if square < any_square:
             any_best, any_square = c, square
         if has_camera:
@@ -353,14 +359,11 @@ def refine(
 @_inline
 def _nearest_of(x, y, z, first, points, neighbours, squares):
     """``Surface.nearest`` for one point, not told the camera: the nearest of ``first``'s
-    neighbours, ordered by |q|^2 - 2 p.q as there. ``_nearest`` untold, written out: a helper
-    that calls another is not compiled into the loop, and cost 3x (a point's lookup)."""
+    neighbours, ordered by |q|^2 - 2 p.q as there: ``_nearest`` untold, in three arguments."""
     best, best_square = -1, np.inf
     for n in range(neighbours.shape[1]):
         c = neighbours[first, n]
-        square = squares[c] + points[c, 0] * (-2.0 * x)
-        square = square + points[c, 1] * (-2.0 * y)
-        square = square + points[c, 2] * (-2.0 * z)
+        square = _order(x, y, z, c, points, squares)
         if square < best_square:
             best, best_square = c, square
     return best
