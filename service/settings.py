@@ -86,7 +86,7 @@ class EngineSettings(BaseModel):
     # where no reading fits well and the viewpoint is known, one more: the part in a bin, its
     # floor and walls set aside (docs/decisions.md#a-part-in-a-bin); false: not tried
     bin_walls: bool = True
-    # refinement's and verification's loops compiled where numba (the fast extra) is installed;
+    # the engine's innermost loops compiled where numba (the fast extra) is installed;
     # false: numpy's, the same poses within 1e-7 (docs/decisions.md#compiled-loops)
     compiled: bool = True
     icp_points: int = Field(384, ge=16)

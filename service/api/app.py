@@ -145,7 +145,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     )
     _log_auth(settings)
     engine = startup.make_engine(settings, mapper)
-    log.info("refinement and verification: %s", kernels.describe())
+    log.info("the engine's loops: %s", kernels.describe())
     catalog = Catalog(engine, store, settings.gallery.max_references)
     app.state.catalog = catalog
     app.state.processes = processes = EngineProcesses(catalog, settings, settings.engine_processes)

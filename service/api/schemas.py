@@ -351,8 +351,8 @@ class Health(BaseModel):
     model: ModelIdentity
     providers: list[str] = Field(description="onnxruntime execution providers in use")
     loops: Literal["compiled", "numpy"] = Field(
-        description="refinement's and verification's loops: compiled by numba (the fast "
-        "extra), or numpy's (a third slower on POST /detect; the same answers)"
+        description="the engine's innermost loops: compiled by numba (the fast extra), or "
+        "numpy's (POST /detect twice as slow; the same answers)"
     )
     references: int
     detail: str | None = Field(None, description="why the service is not ready")

@@ -48,10 +48,8 @@ def grid_segments(
     offset) plus ``links[1]`` of its range."""
     if kernels.switch.enabled:  # linked and joined in one loop (decisions.md#compiled-loops)
         footprints, noise = links
-        rows, columns = frame.cells()
+        rows, columns, _, where = pixel_lookup(frame)
         height, width = frame.grid_shape
-        where = np.full(height * width, -1, dtype=np.intp)
-        where[rows * width + columns] = np.arange(len(frame))
         reach = footprints * (angle * frame.step * ranges)
         points = np.ascontiguousarray(frame.points)
         return kernels.grid_labels(
@@ -71,11 +69,8 @@ def grid_links(
     the frame's points."""
     footprints, noise = links
     step = frame.step
-    rows, columns = frame.cells()
+    rows, columns, pixel, where = pixel_lookup(frame)
     grid_height, grid_width = frame.grid_shape
-    pixel = rows * grid_width + columns
-    where = np.full(grid_height * grid_width, -1, dtype=np.intp)
-    where[pixel] = np.arange(len(frame))
     footprint = angle * step * ranges
     points = frame.points
     firsts, seconds = [], []
@@ -96,6 +91,17 @@ def grid_links(
         firsts.append(mine[linked])
         seconds.append(other[linked])
     return np.concatenate(firsts), np.concatenate(seconds)
+
+
+def pixel_lookup(frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each point's row, column and pixel on the organized frame's own grid, and the point on
+    each pixel of it (flat; -1 where none is)."""
+    rows, columns = frame.cells()
+    grid_height, grid_width = frame.grid_shape
+    pixel = rows * grid_width + columns
+    where = np.full(grid_height * grid_width, -1, dtype=np.intp)
+    where[pixel] = np.arange(len(frame))
+    return rows, columns, pixel, where
 
 
 def components(count: int, first: np.ndarray, second: np.ndarray) -> np.ndarray:
