@@ -9,7 +9,16 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    field_validator,
+    model_validator,
+)
+
+from service.engine.tuning import MAX_GROUP  # the largest group a symmetry may have
 
 ReferenceName = Annotated[
     str,
@@ -135,8 +144,73 @@ class UnitsChoice(BaseModel):
     units: Units | None = None
 
 
+class DeclaredSymmetry(BaseModel):
+    """A symmetry the operator declares at registration, in the frame of the points sent:
+    round about ``axis`` (``revolution``, ``flip``: a half turn about a perpendicular fits
+    too), or ``discrete``: ``order`` turns about ``axis``, or ``rotations``. Each turn must
+    nearly fit the part; it joins what registration finds (docs/api-additions.md)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Literal["revolution", "discrete"]
+    axis: Vector3 | None = Field(None, description="the axis, in the points' own frame")
+    order: int | None = Field(None, ge=2, le=MAX_GROUP, description="discrete: 360/order turns")
+    flip: bool = Field(False, description="revolution: a half turn about a perpendicular fits")
+    rotations: list[Matrix3] | None = Field(
+        None, max_length=MAX_GROUP, description="discrete: 3 x 3 rotations, as a description lists"
+    )
+
+    @model_validator(mode="after")
+    def _complete(self) -> DeclaredSymmetry:
+        if self.axis is not None:
+            norm = math.sqrt(sum(v * v for v in self.axis))
+            if not math.isfinite(norm) or norm < 1e-9:
+                raise ValueError("the axis must be a finite, non-zero vector")
+        if self.kind == "revolution":
+            if self.axis is None or self.order is not None or self.rotations is not None:
+                raise ValueError("a revolution takes an 'axis' (and 'flip'), nothing else")
+        elif self.flip:
+            raise ValueError("'flip' is a revolution's: declare a discrete one's 'rotations'")
+        else:
+            given = (self.axis is not None, self.order is not None, self.rotations is not None)
+            if given not in ((True, True, False), (False, False, True)):
+                raise ValueError("a discrete symmetry takes 'axis' and 'order', or 'rotations'")
+        for k, rotation in enumerate(self.rotations or []):
+            if not _is_rotation(rotation):
+                raise ValueError(f"rotations[{k}] is no rotation (orthonormal, determinant 1)")
+        return self
+
+    def declared(self) -> dict:
+        """The declaration as the engine takes it (and the description keeps it)."""
+        return self.model_dump(exclude_none=True, exclude_defaults=True) | {"kind": self.kind}
+
+
+def _is_rotation(rows: list[list[float]]) -> bool:
+    flat = [v for row in rows for v in row]
+    if not all(math.isfinite(v) for v in flat):
+        return False
+    for i in range(3):
+        for j in range(3):
+            dot = sum(rows[i][k] * rows[j][k] for k in range(3))
+            if abs(dot - (i == j)) > 1e-3:
+                return False
+    (a, b, c), (d, e, f), (g, h, i) = rows
+    return abs(a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) - 1) < 1e-3
+
+
+class SymmetryChoice(BaseModel):
+    """A registration's ``symmetry`` (a JSON field, or a form field of JSON text)."""
+
+    symmetry: DeclaredSymmetry | None = None
+
+
 class ReferenceRequest(ReferenceIdentity):
     points: Points
+    symmetry: DeclaredSymmetry | None = Field(
+        None,
+        description="a symmetry the operator declares, in the points' frame: e.g. "
+        '{"kind": "discrete", "axis": [0, 0, 1], "order": 2}; each turn must nearly fit',
+    )
     units: Units | None = Field(
         None,
         description="the unit the points are in: m, mm, cm or in; the reference is stored in "

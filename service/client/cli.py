@@ -46,6 +46,17 @@ PART_SUFFIXES = (".stl", ".obj", ".ply", ".pcd", ".npy", ".off", ".glb", ".gltf"
 UNITS = ("m", "mm", "cm", "in")  # POST /references' units
 
 
+def json_object(text: str) -> dict:
+    """A command-line argument holding a JSON object (argparse names the option on error)."""
+    try:
+        value = json.loads(text)
+    except ValueError:
+        value = None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"not a JSON object: {text[:80]!r}")
+    return value
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     arguments = parser().parse_args(argv)
     if arguments.command == "serve":
@@ -168,6 +179,13 @@ def parser() -> argparse.ArgumentParser:
         help="the unit the file's points are in (stored in metres; default: as they are)",
     )
     register.add_argument(
+        "--symmetry",
+        type=json_object,
+        help="a symmetry you declare, as JSON in the file's own frame, e.g. "
+        '\'{"kind": "discrete", "axis": [0, 0, 1], "order": 2}\' or '
+        '\'{"kind": "revolution", "axis": [0, 0, 1]}\' (one part only)',
+    )
+    register.add_argument(
         "--no-self-check", dest="self_check", action="store_false", help="skip the self-check"
     )
 
@@ -245,6 +263,8 @@ def run_register(client: Client, arguments: argparse.Namespace) -> int:
     if source.is_dir():
         if arguments.name:
             raise ServiceError("--name names one part: leave it out to register a folder")
+        if arguments.symmetry:
+            raise ServiceError("--symmetry declares one part's: register that part alone")
         parts = sorted(p for p in source.iterdir() if p.suffix.lower() in PART_SUFFIXES)
         if not parts:
             raise ServiceError(f"no mesh or cloud file ({', '.join(PART_SUFFIXES)}) in {source}")
@@ -263,6 +283,7 @@ def run_register(client: Client, arguments: argparse.Namespace) -> int:
                 replace=arguments.replace,
                 self_check=arguments.self_check,
                 units=arguments.units,
+                symmetry=arguments.symmetry,
             )
         ]
     if arguments.json:

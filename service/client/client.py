@@ -11,6 +11,7 @@ Calls that are safe to send again (all but ``health``) are retried on a connecti
 from __future__ import annotations
 
 import io
+import json
 import os
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -149,9 +150,12 @@ class Client:
         replace: bool = False,
         self_check: bool = True,
         units: str | None = None,
+        symmetry: dict | None = None,
     ) -> Reference:
         """Register a part from a mesh or cloud file, or from points (sent as float32 NPY);
-        ``units`` (``m``, ``mm``, ``cm``, ``in``): the unit they are in, stored in metres."""
+        ``units`` (``m``, ``mm``, ``cm``, ``in``): the unit they are in, stored in metres;
+        ``symmetry``: one the operator declares, in the points' frame (e.g. ``{"kind":
+        "discrete", "axis": [0, 0, 1], "order": 2}``)."""
         if isinstance(path_or_points, str | Path):
             path = Path(path_or_points)
             file = (path.name, path.read_bytes())
@@ -160,7 +164,9 @@ class Client:
         answer = self._request(
             "POST",
             "/references",
-            data={"name": name} | ({"units": units} if units else {}),
+            data={"name": name}
+            | ({"units": units} if units else {})
+            | ({"symmetry": json.dumps(symmetry)} if symmetry else {}),
             files={"file": file},
             params={"replace": _flag(replace), "self_check": _flag(self_check)},
         )

@@ -55,7 +55,7 @@ from service.engine.search import Plan, Search, excellent, sure_first
 from service.engine.segments import segments
 from service.engine.supports import Noise, apply_supports, set_aside_supports
 from service.engine.surroundings import Reading, as_is, set_aside_bin, set_aside_surroundings
-from service.engine.symmetry import find_symmetry
+from service.engine.symmetry import Symmetry, declared_symmetry, find_symmetry
 from service.engine.tuning import (
     ALIKE,
     BIN_ACCEPT,
@@ -93,7 +93,7 @@ from service.engine.views import (
     splat_visible,
 )
 from service.engine.visibility import hidden_share, random_camera, visible_points
-from service.errors import EmptyGallery, UnknownReference
+from service.errors import EmptyGallery, InvalidPoints, UnknownReference
 from service.settings import EngineSettings
 
 SELF_CHECK_THREADS = 2  # renders of the registration check aligned at once
@@ -125,10 +125,13 @@ class Engine:
         seed: int | None = None,
         mesh: trimesh.Trimesh | None = None,
         face_index: np.ndarray | None = None,
+        symmetry: dict | None = None,
     ) -> Reference:
         """Compute what the engine needs of a new object from its points (sampled on ``mesh``'s
         faces ``face_index``, when it came as a mesh): mapped points, view grids, scale, then
-        normals, rendered views, distance field and symmetry.
+        normals, rendered views, distance field and symmetry (with the one an operator
+        declared, ``symmetry``: ``symmetry.declared_symmetry``; ``InvalidPoints`` where it does
+        not fit).
 
         The network's share (the points, the augmented views, then the rendered views) runs in
         a thread of its own beside the geometry (onnxruntime lets go of the GIL while it runs);
@@ -141,7 +144,7 @@ class Engine:
         with ThreadPoolExecutor(1, thread_name_prefix="network") as network:
             mapped = network.submit(self.map, points, True)
             grids = network.submit(self._grids, augmented)
-            derived = self._derive(points, scale, mesh, face_index, network)
+            derived = self._derive(points, scale, mesh, face_index, network, symmetry)
             reference = Reference(name, points, mapped.result(), grids.result(), scale)
         return reference.with_(**derived)
 
@@ -155,8 +158,11 @@ class Engine:
         when a mesh is given): normals, views, distance field, symmetry."""
         if mesh is None and not reference.missing:
             return reference
+        declared = (reference.symmetry or {}).get("declared")
         with ThreadPoolExecutor(1, thread_name_prefix="network") as network:
-            derived = self._derive(reference.points, reference.scale, mesh, face_index, network)
+            derived = self._derive(
+                reference.points, reference.scale, mesh, face_index, network, declared
+            )
         return reference.with_(**derived)
 
     def _derive(
@@ -166,6 +172,7 @@ class Engine:
         mesh: trimesh.Trimesh | None,
         face_index: np.ndarray | None,
         network: ThreadPoolExecutor,
+        declared: dict | None = None,
     ) -> dict:
         """The derived fields of a reference of these points and scale; the rendered views'
         grids are mapped on ``network`` while this thread finds the symmetry."""
@@ -192,7 +199,7 @@ class Engine:
         grids = network.submit(self._grids, seen)
         distance_field = DistanceField.of(points, scale, tree=tree)
         surface_model = Surface.of(points, normals, distance_field, tree)
-        symmetry = find_symmetry(surface_model, scale, np.random.default_rng(0))
+        symmetry = self._symmetry(surface_model, scale, declared)
         return {
             "normals": normals.astype(np.float32),
             "visibility": np.packbits(visible, axis=1),
@@ -208,10 +215,22 @@ class Engine:
 
     def refind_symmetry(self, reference: Reference) -> Reference:
         """The reference with its symmetry found again by this version's rule, from its stored
-        surface (points, normals, distance field), every other field as it was."""
-        surface = stored_surface(reference)
-        symmetry = find_symmetry(surface, reference.scale, np.random.default_rng(0))
+        surface (points, normals, distance field), with what was declared, every other field
+        as it was."""
+        declared = (reference.symmetry or {}).get("declared")
+        symmetry = self._symmetry(stored_surface(reference), reference.scale, declared)
         return reference.with_(symmetry=symmetry.describe())
+
+    @staticmethod
+    def _symmetry(surface: Surface, scale: float, declared: dict | None) -> Symmetry:
+        """The part's symmetry: found, and joined with the ``declared`` one."""
+        found = find_symmetry(surface, scale, np.random.default_rng(0))
+        if declared is None:
+            return found
+        try:
+            return declared_symmetry(surface, scale, declared, found)
+        except ValueError as error:
+            raise InvalidPoints(str(error)) from None
 
     def view_grid(self, points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The grid of an augmented view (``augmented_view``)."""

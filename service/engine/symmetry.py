@@ -31,6 +31,11 @@ Among poses the symmetry makes equivalent (``R S`` with the translation that kee
 in place), ``canonical`` answers the one whose rotation is nearest the identity (the largest
 trace), so the same surface in the same place always gives the same matrix.
 
+An operator who knows the part may declare its symmetry at registration (``declared_symmetry``):
+a turn the self-fit cannot confirm on a cloud's estimated normals, or one only a detail that
+does not matter to the cell breaks. A declared turn must still nearly fit (``NEAR``); it joins
+what was found (docs/decisions.md#declared-at-registration).
+
 ``near`` keeps the turns that nearly fit (``NEAR`` of the leave-one-out share) but are no
 symmetry, and turns every ``NEAR_TURN_DEG`` about a nearly round axis: poses a view may hardly
 tell apart from the answer's, which the engine tries too (``Search.resolve_near``).
@@ -38,7 +43,7 @@ tell apart from the answer's, which the engine tries too (``Search.resolve_near`
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from itertools import permutations, product
 
@@ -86,6 +91,7 @@ class Symmetry:
     # that only a notch tells apart, a shaft's end-for-end flip, a gear's tooth): poses the
     # answer is tried at as well, since a view may hardly tell them apart
     near: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    declared: dict | None = None  # what the operator declared at registration, as sent
 
     @classmethod
     def none(cls, centroid: np.ndarray, near: np.ndarray | None = None) -> Symmetry:
@@ -143,6 +149,8 @@ class Symmetry:
         described["centre"] = np.round(self.centroid, 9).tolist()
         if len(self.near):
             described["near"] = np.round(self.near, 6).tolist()
+        if self.declared is not None:
+            described["declared"] = self.declared
         return described
 
     @staticmethod
@@ -156,20 +164,18 @@ class Symmetry:
     def from_description(cls, described: dict, centroid: np.ndarray) -> Symmetry:
         centre = np.asarray(described.get("centre", centroid), np.float64)
         near = np.asarray(described.get("near", np.zeros((0, 3, 3))), np.float64).reshape(-1, 3, 3)
+        declared = described.get("declared")
         if described.get("kind") == "revolution":
             axis = np.asarray(described["axis"], np.float64)
             rotations = [np.eye(3)]
             if described.get("flip"):
                 rotations.append(rotation_vector(np.pi * _perpendicular(axis)))
-            return cls("revolution", centre, np.stack(rotations), axis / np.linalg.norm(axis))
+            axis = axis / np.linalg.norm(axis)
+            return cls("revolution", centre, np.stack(rotations), axis, near, declared)
         if described.get("kind") == "discrete":
-            return cls(
-                "discrete",
-                centre,
-                np.asarray(described["rotations"], np.float64),
-                near=near,
-            )
-        return cls.none(centre, near)
+            rotations = np.asarray(described["rotations"], np.float64)
+            return cls("discrete", centre, rotations, near=near, declared=declared)
+        return replace(cls.none(centre, near), declared=declared)
 
     def equivalent(self, rotation: np.ndarray) -> np.ndarray:
         """(G, 3, 3) rotations equivalent to ``rotation`` under the discrete part."""
@@ -391,6 +397,99 @@ def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> S
         return Symmetry.none(centroid, near)
     centre = _fixed_point(found[1:], centroid)
     return Symmetry("discrete", centre, group, near=near)
+
+
+def declared_symmetry(surface: Surface, scale: float, declared: dict, found: Symmetry) -> Symmetry:
+    """The symmetry an operator declared (``{"kind": "revolution", "axis", "flip"}``, or
+    ``{"kind": "discrete"}`` with ``"axis"`` and ``"order"``, or with ``"rotations"``: 3 x 3
+    matrices in the points' frame), joined with what registration ``found``. The turns turn
+    about the point a refinement of the first onto the part leaves in place. Raises
+    ``ValueError``, naming the turn, where one does not nearly fit (``NEAR``), or where the
+    rotations generate more than ``MAX_GROUP``."""
+    points = surface.points
+    own = _SelfFit.of(surface, scale)
+    revolution = declared["kind"] == "revolution" or found.kind == "revolution"
+    if declared["kind"] == "revolution":
+        axis = _unit(declared["axis"])
+        turns = [rotation_vector(axis * np.radians(a)) for a in REVOLUTION_ANGLES_DEG]
+        flips = [rotation_vector(np.pi * _perpendicular(axis))] if declared.get("flip") else []
+    elif "rotations" in declared:
+        turns, flips = [np.asarray(r, np.float64) for r in declared["rotations"]], []
+        axis = found.axis
+    else:
+        axis = _unit(declared["axis"])
+        order = int(declared["order"])
+        turns = [rotation_vector(axis * 2 * np.pi * k / order) for k in range(1, order)]
+        axis, flips = found.axis, []
+    turns = [t for t in turns if _angle_deg(t, np.eye(3)) > SAME_DEG]
+    if declared["kind"] == "discrete" and found.kind == "revolution":  # a declared flip
+        flips = [t for t in turns if (t @ found.axis) @ found.axis < 0][:1]
+    centre = _centre(surface, scale, (turns + flips)[:1], found.centroid)
+    for turn in turns + flips:
+        distance = own.moved(surface, points, turn, _about(turn, centre))
+        if not own.nearly(distance):
+            raise ValueError(_misfit(turn, distance, own))
+    if revolution and axis is not None:  # a round part: every turn about its axis fits
+        kept = list(found.rotations[1:2]) if found.kind == "revolution" else []  # its flip
+        rotations = [np.eye(3)] + (flips[:1] or kept)
+        near = found.near[~_near_axis(found.near, axis)] if len(found.near) else found.near
+        return Symmetry("revolution", centre, np.stack(rotations), axis, near, declared)
+    group = _closed([np.asarray(r, np.float64) for r in found.rotations] + turns)
+    near = _distinct_near(list(found.near), group)
+    return Symmetry("discrete", centre, group, near=near, declared=declared)
+
+
+def _unit(vector) -> np.ndarray:
+    vector = np.asarray(vector, np.float64)
+    return vector / np.linalg.norm(vector)
+
+
+def _centre(
+    surface: Surface, scale: float, turns: list[np.ndarray], centroid: np.ndarray
+) -> np.ndarray:
+    """The point ``turns[0]`` turns about once refined onto the part itself (a cloud's centroid
+    lies off the axis where one side was sampled more), else ``centroid``."""
+    if not turns:
+        return centroid
+    turn = turns[0]
+    points = surface.points
+    rotation, translation, _ = icp(
+        points, surface, turn, _about(turn, centroid), 0.002 * scale, 0.3 * scale, 30
+    )
+    centre = _fixed_point([(rotation, translation)], centroid)
+    return centre if np.linalg.norm(centre - centroid) <= DRIFT * scale else centroid
+
+
+def _misfit(turn: np.ndarray, distance: np.ndarray, own: _SelfFit) -> str:
+    """Why a declared turn was refused: its angle and axis, and the shares on the surface."""
+    vector = Rotation.from_matrix(turn).as_rotvec()
+    angle = np.degrees(np.linalg.norm(vector))
+    axis = ", ".join(f"{v:.3f}" for v in vector / max(np.linalg.norm(vector), 1e-12))
+    share = float(np.mean(distance < own.tolerance))
+    kept = float(np.mean(own.distance < own.tolerance))
+    return (
+        f"the declared symmetry does not fit the part: turned by {angle:.0f} degrees about "
+        f"[{axis}], {share:.0%} of its points lie on its surface, where {NEAR:.0%} of its own "
+        f"points' share ({kept:.0%}) is needed. Give the axis in the frame of the points sent"
+    )
+
+
+def _closed(rotations: list[np.ndarray]) -> np.ndarray:
+    """(G, 3, 3) the group ``rotations`` generate, identity first; ``ValueError`` beyond
+    ``MAX_GROUP`` (a turn by an angle that divides no whole turn)."""
+    group = [np.eye(3)] + [r for r in rotations if _angle_deg(r, np.eye(3)) > SAME_DEG]
+    while True:
+        stacked = np.stack(group)
+        products = np.einsum("aij,bjk->abik", stacked, stacked).reshape(-1, 3, 3)
+        fresh = products[~_near(products, stacked).any(axis=1)]
+        if not len(fresh):
+            return stacked
+        group.extend(fresh[apart(fresh, SAME_DEG, len(fresh))])
+        if len(group) > MAX_GROUP:
+            raise ValueError(
+                f"the declared rotations generate more than {MAX_GROUP}: declare turns by "
+                "whole fractions of a turn (360/n degrees), or a revolution"
+            )
 
 
 def _distinct_near(nearly: list[np.ndarray], group: np.ndarray) -> np.ndarray:

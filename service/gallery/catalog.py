@@ -52,6 +52,7 @@ class Part:
     mesh: trimesh.Trimesh | None = None
     face_index: np.ndarray | None = None
     reference: Reference | None = None  # computed already (an imported one)
+    symmetry: dict | None = None  # the symmetry its operator declared (Engine.make_reference)
 
 
 class Catalog:
@@ -117,7 +118,8 @@ class Catalog:
             if record.missing:
                 why = f"stored without {', '.join(record.missing)}"
             log.info("recomputing reference %r: %s", record.name, why)
-            reference = self.engine.make_reference(record.name, record.points)
+            declared = (record.values.get("symmetry") or {}).get("declared")
+            reference = self.engine.make_reference(record.name, record.points, symmetry=declared)
         if write_back:
             rewritten = self.store.rewrite(reference, self.model_hash, was=record.sha256)
             return reference, rewritten or record.sha256
@@ -142,9 +144,10 @@ class Catalog:
         commit: Callable[[], None] = lambda: None,
         mesh: trimesh.Trimesh | None = None,
         face_index: np.ndarray | None = None,
+        symmetry: dict | None = None,
     ) -> tuple[Reference, str, list[dict] | None]:
-        """Compute, store and add a reference; returns it, the outcome (``CREATED``,
-        ``REPLACED`` or ``IDENTICAL``) and its self-check.
+        """Compute, store and add a reference (with the ``symmetry`` its operator declared);
+        returns it, the outcome (``CREATED``, ``REPLACED`` or ``IDENTICAL``) and its self-check.
 
         The same name with the same points (``points_sha256``) and no ``replace`` is
         ``IDENTICAL``: nothing is computed or stored, so a client may send a registration again
@@ -152,7 +155,7 @@ class Catalog:
         connection). ``points`` were sampled on ``mesh``'s faces ``face_index`` when it came as
         a mesh. ``commit`` is called just before the durable write and may raise to stop it.
         """
-        part = Part(name, points, mesh, face_index)
+        part = Part(name, points, mesh, face_index, symmetry=symmetry)
         return self.register_many([part], replace, self_check_poses, commit)[0]
 
     def register_many(
@@ -166,10 +169,11 @@ class Catalog:
         transaction and one refit of the classifier; then each part's self-check against the
         whole gallery, the batch included."""
         digests = {p.name: points_sha256(np.asarray(p.points, dtype=np.float32)) for p in parts}
-        same = self._identical(digests, replace)  # fail fast, before the slow part
+        declared = {p.name: p.symmetry for p in parts}
+        same = self._identical(digests, replace, declared)  # fail fast, before the slow part
         made = {p.name: self._make(p) for p in parts if p.name not in same}
         with self._write_lock:
-            same = self._identical(digests, replace)
+            same = self._identical(digests, replace, declared)
             fresh = [made[p.name] for p in parts if p.name not in same]
             previous = {r.name: self.engine.get(r.name) for r in fresh}
             if fresh:
@@ -203,8 +207,9 @@ class Catalog:
         if part.reference is not None:
             return part.reference
         return self.engine.make_reference(
-            part.name, part.points, mesh=part.mesh, face_index=part.face_index
-        )
+            part.name, part.points, mesh=part.mesh, face_index=part.face_index,
+            symmetry=part.symmetry,
+        )  # fmt: skip
 
     def restore(
         self,
@@ -274,14 +279,19 @@ class Catalog:
             rest = [r for r in references if r.name not in same]
             return self.store.put_many(rest, self.model_hash) if rest else {}
 
-    def _identical(self, digests: dict[str, str], replace: bool) -> dict[str, Reference]:
-        """The references held under these names with these points (none with ``replace``);
-        raises if one of the others may not be (re)registered, or they would not fit."""
+    def _identical(
+        self, digests: dict[str, str], replace: bool, declared: dict[str, dict | None]
+    ) -> dict[str, Reference]:
+        """The references held under these names with these points and the same ``declared``
+        symmetry (none with ``replace``); raises if one of the others may not be
+        (re)registered, or they would not fit."""
         same = {}
         if not replace:
             for name, digest in digests.items():
                 existing = self.engine.get(name)
-                if existing is not None and existing.points_sha256 == digest:
+                if existing is None or existing.points_sha256 != digest:
+                    continue
+                if (existing.symmetry or {}).get("declared") == declared.get(name):
                     same[name] = existing
         self._check_can_add([name for name in digests if name not in same], replace)
         return same

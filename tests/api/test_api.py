@@ -276,7 +276,7 @@ def test_unknown_reference_fields_are_refused_and_change_nothing(api):
     upload = {"file": ("part.npy", npy(np.asarray(GOOD, np.float32)))}
     extra = api.post("/references", data={"name": "typo", "replace": "true"}, files=upload)
     assert extra.status_code == 422 and "'replace'" in detail(extra)
-    assert "name, units, file" in detail(extra)
+    assert "name, units, symmetry, file" in detail(extra)
     assert api.get("/references").json() == before
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterable
 from pathlib import PurePath
 from typing import Annotated
@@ -34,6 +35,7 @@ from service.api.schemas import (
     ReferenceRequest,
     ReferenceResponse,
     SelfCheck,
+    SymmetryChoice,
     Units,
     UnitsChoice,
 )
@@ -87,17 +89,20 @@ async def register(
     units: Annotated[Units | None, Query(description=UNITS_DESCRIPTION)] = None,
 ) -> ReferenceResponse:
     """JSON ``{"name", "points"}``, or multipart ``name`` + ``file`` (STL, OBJ, PLY, PCD, NPY);
-    ``units`` as a query parameter, a JSON field or a form field (the body's wins)."""
+    ``units`` as a query parameter, a JSON field or a form field (the body's wins); a declared
+    ``symmetry`` as a JSON field or a form field of JSON text."""
     if body_kind(request, JSON, MULTIPART) == MULTIPART:
-        form = await read_form(request, ("file",), ("name", "units"), "the mesh or cloud")
-        fields = {k: v for k in ("name", "units") if (v := form.value(k)) is not None}
+        named = ("name", "units", "symmetry")
+        form = await read_form(request, ("file",), named, "the mesh or cloud")
+        fields = {k: v for k in named if (v := form.value(k)) is not None}
         source = form.files["file"]
     else:
         fields, source = json_object(await request.body()), None
     units = parse(UnitsChoice, {"units": fields.pop("units", units)}).units
+    declared = declared_symmetry(fields.pop("symmetry", None))
     poses = settings.gallery.self_check_poses if self_check else 0
     reference, outcome, checks = await limiter.write(
-        _register, catalog, settings, fields, source, replace, poses, units
+        _register, catalog, settings, fields, source, replace, poses, units, declared
     )
     response.status_code = status.HTTP_201_CREATED if outcome == CREATED else status.HTTP_200_OK
     return answer_of(catalog.engine, reference, outcome, checks, units)
@@ -136,6 +141,22 @@ UNITS_DESCRIPTION = (
 )
 
 
+def declared_symmetry(value: object) -> dict | None:
+    """A registration's declared ``symmetry`` (``DeclaredSymmetry``; a form field's JSON text
+    decoded), as the engine takes it; None when not given."""
+    if isinstance(value, str):
+        try:
+            value = json.loads(value)
+        except ValueError:
+            message = "'symmetry' must be a JSON object, e.g. " + SYMMETRY_EXAMPLE
+            raise invalid(message, "symmetry") from None
+    declared = parse(SymmetryChoice, {"symmetry": value}).symmetry
+    return None if declared is None else declared.declared()
+
+
+SYMMETRY_EXAMPLE = '{"kind": "discrete", "axis": [0, 0, 1], "order": 2}'
+
+
 def _size_warnings(engine: Engine, reference: Reference, units: str | None) -> list[str]:
     """A size outside a camera's range, or far from every other part's, naming the unit."""
     others = {n: engine.get(n) for n in engine.names() if n != reference.name}
@@ -152,9 +173,10 @@ def _register(
     replace: bool,
     self_check_poses: int,
     units: str | None = None,
+    declared: dict | None = None,
 ) -> tuple[Reference, str, list[dict] | None]:
     """Validate, read the points (stored in metres, from ``units``), compute and store the
-    reference (in a worker thread)."""
+    reference with its ``declared`` symmetry (in a worker thread)."""
     known_fields(fields, ReferenceRequest.model_fields)
     identity = parse(ReferenceIdentity, {k: v for k, v in fields.items() if k != "points"})
     upload = Upload(require(fields, "points")) if source is None else None
@@ -167,6 +189,7 @@ def _register(
         job.commit,
         mesh=part.mesh,
         face_index=part.face_index,
+        symmetry=declared,
     )
 
 
@@ -421,7 +444,9 @@ def warnings(
             "detail tells them apart): /align tries them and names those that fit alike as "
             "alternatives; a view that does not show the detail may be answered as ambiguous. "
             "If a turn is a true symmetry of the part and it was registered from a cloud, "
-            "register its mesh: a cloud's estimated normals can hide a symmetry, and then one "
-            "surface may be answered at poses that turn apart"
+            "register its mesh, or declare the symmetry ('symmetry', e.g. "
+            + SYMMETRY_EXAMPLE
+            + "): a cloud's estimated normals can hide a symmetry, and then one surface may be "
+            "answered at poses that turn apart"
         )
     return said
