@@ -157,7 +157,10 @@ class DeclaredSymmetry(BaseModel):
     order: int | None = Field(None, ge=2, le=MAX_GROUP, description="discrete: 360/order turns")
     flip: bool = Field(False, description="revolution: a half turn about a perpendicular fits")
     rotations: list[Matrix3] | None = Field(
-        None, max_length=MAX_GROUP, description="discrete: 3 x 3 rotations, as a description lists"
+        None,
+        min_length=1,
+        max_length=MAX_GROUP,
+        description="discrete: 3 x 3 rotations, as a description lists",
     )
 
     @model_validator(mode="after")

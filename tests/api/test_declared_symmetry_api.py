@@ -66,6 +66,7 @@ def test_a_declared_symmetry_is_stored_and_makes_registrations_differ(service, f
         ({"kind": "discrete", "axis": [0, 0, 0], "order": 2}, "non-zero vector"),
         ({"kind": "discrete", "rotations": [[[1, 0, 0], [0, 1, 0], [0, 0, 2]]]}, "no rotation"),
         ({"kind": "discrete", "axis": [0, 0, 1], "order": 1}, "greater than or equal to 2"),
+        ({"kind": "discrete", "rotations": []}, "at least 1 item"),
         ({"kind": "helical", "axis": [0, 0, 1]}, "'revolution' or 'discrete'"),
         ({"kind": "discrete", "axis": [1, 0, 0], "order": 2}, "does not fit the part"),
         ("[1, 2", "must be a JSON object"),

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import trimesh
 
 from evaluation.cases import make_cases
 from evaluation.metrics import symmetric_spread
@@ -98,3 +99,24 @@ def test_the_flange_declared_round_gets_one_pose_for_one_surface(flange):
     print(spreads)
     assert len(spreads["declared"]) == 4 and max(spreads["declared"]) < 2.0, spreads
     assert sum(s < 2.0 for s in spreads["found"]) <= 1, spreads
+
+
+@needs_model
+def test_a_declared_half_turn_across_a_round_part_is_its_flip(engine):
+    """A cylinder's flip end for end joins the revolution found (the self-fit at this draw
+    finds the revolution alone); a cone's is refused."""
+    across = {"kind": "discrete", "axis": [1.0, 0.0, 0.0], "order": 2}
+    for name, mesh in (("cylinder", trimesh.creation.cylinder(0.03, 0.12)),
+                       ("cone", trimesh.creation.cone(0.04, 0.08))):  # fmt: skip
+        points, faces = sample_surface_faces(mesh, 2048, 0)
+        found = engine.make_reference(name, points, mesh=mesh, face_index=faces).symmetry
+        assert found["kind"] == "revolution" and not found["flip"]
+        if name == "cone":
+            with pytest.raises(InvalidPoints, match="does not fit"):
+                engine.make_reference(name, points, mesh=mesh, face_index=faces, symmetry=across)
+            continue
+        declared = engine.make_reference(
+            name, points, mesh=mesh, face_index=faces, symmetry=across
+        ).symmetry
+        assert declared["kind"] == "revolution" and declared["flip"]
+        assert abs(abs(declared["axis"][2]) - 1) < 1e-3
