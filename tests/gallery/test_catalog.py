@@ -113,6 +113,38 @@ def test_a_symmetry_found_by_an_earlier_rule_is_found_again_with_nothing_else_ch
         assert sha(getattr(record.reference, name)) == sha(getattr(registered, name)), name
 
 
+@dataclasses.dataclass(frozen=True)
+class EarlierDeclared(EarlierReference):
+    """An earlier version's ``Reference`` with the symmetry its operator declared."""
+
+    symmetry: dict
+
+
+def test_a_declared_symmetry_is_kept_by_replicas_rules_and_recomputation(replicas, mapper):
+    """The declaration (docs/decisions.md#declared-at-registration) reaches another replica,
+    is applied again where an earlier rule's symmetry is found again, and where the reference
+    is recomputed from its points."""
+    a, b = replicas
+    box = np.random.default_rng(5).uniform(-1, 1, (2048, 3))
+    box *= 1 / np.abs(box).max(axis=1, keepdims=True)  # on a cube's faces
+    box = (box * [0.02, 0.04, 0.06]).astype(np.float32)  # a box: four rotations fit
+    declared = {"kind": "discrete", "axis": [0.0, 0.0, 1.0], "order": 2}
+    registered, _, _ = a.register("box", box, symmetry=declared)
+    assert registered.symmetry["declared"] == declared
+    assert b.sync() == 1 and b.engine.get("box").symmetry == registered.symmetry
+
+    earlier = registered.with_(symmetry={"kind": "none", "declared": declared})
+    a.store.put(earlier, a.model_hash, replace=True)  # found by an earlier rule
+    assert catalog_on(a.store, mapper).engine.get("box").symmetry == registered.symmetry
+
+    mapped = np.zeros((len(box), 2), np.float32)
+    old = EarlierDeclared("box", box, mapped, 1.0, {"kind": "none", "declared": declared})
+    a.store.put(old, a.model_hash, replace=True)  # stored without view grids
+    recomputed = catalog_on(a.store, mapper).engine.get("box")
+    assert recomputed.symmetry["declared"] == declared
+    assert len(recomputed.symmetry["rotations"]) == len(registered.symmetry["rotations"])
+
+
 def test_a_cloud_s_views_keep_the_points_facing_their_camera(replicas):
     a, _ = replicas
     box = np.random.default_rng(6).uniform(-1, 1, (2048, 3))
