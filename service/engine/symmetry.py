@@ -138,6 +138,28 @@ class Symmetry:
             return np.zeros(len(self.near_tried), dtype=bool)
         return (self.near_tried @ axis) @ axis < 0
 
+    def suggested(self) -> list[dict]:
+        """Declarations (``declared_symmetry``) that would make the near turns symmetries: a
+        revolution about the ``round_axis``; else, about each other axis they turn about, the
+        turns by 360/n degrees that the smallest of them is (within ``SAME_DEG``). What an
+        operator who knows the part may send (docs/decisions.md#declared-at-registration)."""
+        if not len(self.near):
+            return []
+        if self.round_axis is not None:
+            return [{"kind": "revolution", "axis": _rounded(self.round_axis)}]
+        suggestions: list[dict] = []
+        axes, angles = _axes(self.near), np.degrees(Rotation.from_matrix(self.near).magnitude())
+        taken = np.zeros(len(axes), dtype=bool)
+        for k in np.argsort(angles):
+            if taken[k]:
+                continue
+            same = np.abs(axes @ axes[k]) > np.cos(np.radians(SAME_DEG))
+            taken |= same
+            order = int(round(360 / angles[k]))  # the folds find_symmetry tries
+            if 2 <= order <= MAX_FOLD and abs(360 / order - angles[k]) <= SAME_DEG:
+                suggestions.append({"kind": "discrete", "axis": _rounded(axes[k]), "order": order})
+        return suggestions
+
     def describe(self) -> dict:
         """The JSON description a reference shows (and the store keeps)."""
         described: dict = {"kind": self.kind, "rule": RULE}
@@ -437,6 +459,12 @@ def declared_symmetry(surface: Surface, scale: float, declared: dict, found: Sym
     group = _closed([np.asarray(r, np.float64) for r in found.rotations] + turns)
     near = _distinct_near(list(found.near), group)
     return Symmetry("discrete", centre, group, near=near, declared=declared)
+
+
+def _rounded(axis: np.ndarray) -> list[float]:
+    """An axis as a declaration gives it: its largest component positive, to 3 decimals."""
+    axis = axis * np.sign(axis[np.argmax(np.abs(axis))])
+    return [round(float(v), 3) + 0.0 for v in axis]  # + 0.0: no -0.0
 
 
 def _unit(vector) -> np.ndarray:

@@ -106,3 +106,20 @@ def test_the_form_the_client_and_the_command_line_declare_it(service, flange, tm
     assert json.loads(capsys.readouterr().out)["symmetry"]["declared"] == HALF_TURN
     for name in ("flange-form", "flange-client", "flange-cli"):
         assert service.client.delete(f"/references/{name}").status_code == 204
+
+
+def test_the_registration_s_warning_offers_a_declaration_that_is_taken(service, flange):
+    """The flange's cloud: its near turns about its axis make it nearly round, and the warning
+    names the declaration that makes it round; sent back, it is."""
+    answer = post_json(service, "flange-offer", flange)
+    try:
+        assert answer.status_code == 201, answer.text[:500]
+        (said,) = [w for w in answer.json()["warnings"] if "nearly fit" in w]
+        offered = json.loads(said.split("'symmetry': ")[1].split(" (")[0])
+        assert offered == {"kind": "revolution", "axis": [0.0, 0.0, 1.0]}
+        again = post_json(service, "flange-offer", flange, replace=True, symmetry=offered)
+        assert again.status_code == 200, again.text[:500]
+        assert again.json()["symmetry"]["kind"] == "revolution"
+        assert not [w for w in again.json()["warnings"] if "nearly fit" in w]
+    finally:
+        service.client.delete("/references/flange-offer")

@@ -44,6 +44,7 @@ from service.api.validation import validate_points
 from service.engine.engine import Engine
 from service.engine.look_alikes import confused, same_points, told_from
 from service.engine.reference import Reference
+from service.engine.symmetry import Symmetry
 from service.engine.units import size_warnings
 from service.errors import InvalidPoints, UnknownReference
 from service.gallery.catalog import CREATED, IDENTICAL, Catalog, Part
@@ -439,14 +440,16 @@ def warnings(
     if len(near):
         cosines = np.clip((np.trace(near, axis1=1, axis2=2) - 1) / 2, -1, 1)
         turns = ", ".join(f"{a:.0f}" for a in sorted(set(np.round(np.degrees(np.arccos(cosines))))))
+        centre = np.asarray(symmetry.get("centre", np.zeros(3)), np.float64)
+        offered = Symmetry.from_description(symmetry, centre).suggested()
+        example = " or ".join(json.dumps(d) for d in offered[:2]) or SYMMETRY_EXAMPLE
         said.append(
             f"turns of {reference.name} by {turns} degrees nearly fit its own surface (only a "
             "detail tells them apart): /align tries them and names those that fit alike as "
             "alternatives; a view that does not show the detail may be answered as ambiguous. "
-            "If a turn is a true symmetry of the part and it was registered from a cloud, "
-            "register its mesh, or declare the symmetry ('symmetry', e.g. "
-            + SYMMETRY_EXAMPLE
-            + "): a cloud's estimated normals can hide a symmetry, and then one surface may be "
-            "answered at poses that turn apart"
+            "If a turn is a true symmetry of the part, or the detail does not matter to your "
+            f"cell, register it again with 'symmetry': {example} (a cloud's estimated normals "
+            "can hide a symmetry, and then one surface may be answered at poses that turn "
+            "apart; a mesh shows it best)"
         )
     return said
