@@ -447,16 +447,22 @@ def declared_symmetry(surface: Surface, scale: float, declared: dict, found: Sym
     if declared["kind"] == "discrete" and found.kind == "revolution":  # a declared flip
         flips = [t for t in turns if (t @ found.axis) @ found.axis < 0][:1]
     centre = _centre(surface, scale, (turns + flips)[:1], found.centroid)
-    for turn in turns + flips:
-        distance = own.moved(surface, points, turn, _about(turn, centre))
-        if not own.nearly(distance):
-            raise ValueError(_misfit(turn, distance, own))
+
+    def check(rotations: list[np.ndarray]) -> None:
+        for turn in rotations:
+            distance = own.moved(surface, points, turn, _about(turn, centre))
+            if not own.nearly(distance):
+                raise ValueError(_misfit(turn, distance, own))
+
     if revolution and axis is not None:  # a round part: every turn about its axis fits
+        check(turns + flips)
         kept = list(found.rotations[1:2]) if found.kind == "revolution" else []  # its flip
         rotations = [np.eye(3)] + (flips[:1] or kept)
         near = found.near[~_near_axis(found.near, axis)] if len(found.near) else found.near
         return Symmetry("revolution", centre, np.stack(rotations), axis, near, declared)
+    check(turns)  # the declared first, so that a refusal names one of them
     group = _closed([np.asarray(r, np.float64) for r in found.rotations] + turns)
+    check([g for g in group[1:] if not _near(g[None], found.rotations).any()])  # products
     near = _distinct_near(list(found.near), group)
     return Symmetry("discrete", centre, group, near=near, declared=declared)
 
