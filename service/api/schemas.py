@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal
 
+import numpy as np
 from pydantic import (
     BaseModel,
     ConfigDict,
@@ -185,20 +186,16 @@ class DeclaredSymmetry(BaseModel):
 
     def declared(self) -> dict:
         """The declaration as the engine takes it (and the description keeps it)."""
-        return self.model_dump(exclude_none=True, exclude_defaults=True) | {"kind": self.kind}
+        return self.model_dump(exclude_none=True, exclude_defaults=True)  # kind has no default
 
 
 def _is_rotation(rows: list[list[float]]) -> bool:
-    flat = [v for row in rows for v in row]
-    if not all(math.isfinite(v) for v in flat):
+    """Orthonormal with determinant 1, to 1e-3."""
+    matrix = np.asarray(rows, np.float64)
+    if not np.isfinite(matrix).all():
         return False
-    for i in range(3):
-        for j in range(3):
-            dot = sum(rows[i][k] * rows[j][k] for k in range(3))
-            if abs(dot - (i == j)) > 1e-3:
-                return False
-    (a, b, c), (d, e, f), (g, h, i) = rows
-    return abs(a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) - 1) < 1e-3
+    orthonormal = np.allclose(matrix @ matrix.T, np.eye(3), rtol=0, atol=1e-3)
+    return orthonormal and abs(np.linalg.det(matrix) - 1) < 1e-3
 
 
 class SymmetryChoice(BaseModel):

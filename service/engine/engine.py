@@ -158,7 +158,7 @@ class Engine:
         when a mesh is given): normals, views, distance field, symmetry."""
         if mesh is None and not reference.missing:
             return reference
-        declared = (reference.symmetry or {}).get("declared")
+        declared = Symmetry.declared_in(reference.symmetry)
         with ThreadPoolExecutor(1, thread_name_prefix="network") as network:
             derived = self._derive(
                 reference.points, reference.scale, mesh, face_index, network, declared
@@ -217,7 +217,7 @@ class Engine:
         """The reference with its symmetry found again by this version's rule, from its stored
         surface (points, normals, distance field), with what was declared, every other field
         as it was."""
-        declared = (reference.symmetry or {}).get("declared")
+        declared = Symmetry.declared_in(reference.symmetry)
         symmetry = self._symmetry(stored_surface(reference), reference.scale, declared)
         return reference.with_(symmetry=symmetry.describe())
 

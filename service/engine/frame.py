@@ -269,7 +269,7 @@ def pair_angles(points: np.ndarray, first: np.ndarray, viewpoint: np.ndarray) ->
     """(K,) the angle between the rays from ``viewpoint`` to the points ``first`` and ``first +
     1``; NaN where a point lies at the viewpoint. The cosines in one compiled pass where it
     can be (``kernels.pair_cosines``)."""
-    if kernels.switch.enabled and points.dtype == np.float64 and points.flags.c_contiguous:
+    if kernels.takes(points):
         cosine = kernels.pair_cosines(points, first, np.ascontiguousarray(viewpoint, np.float64))
     else:
         ends = []

@@ -61,6 +61,12 @@ def use(enabled: bool) -> bool:
     return switch.enabled
 
 
+def takes(points: np.ndarray) -> bool:
+    """Whether a compiled loop runs on ``points``: switched on, and C-ordered float64 (the
+    loops over a frame's points, ``squared_distances`` and ``pair_cosines``)."""
+    return switch.enabled and points.dtype == np.float64 and points.flags.c_contiguous
+
+
 def describe() -> str:
     """Which loops run, for the start's log."""
     if switch.enabled:
@@ -537,7 +543,7 @@ def squared_distances(points, centre):
 
 @_compiled
 def pair_cosines(points, first, viewpoint):
-    """``frame.pair_cosines``: (K,) the cosine between the rays from ``viewpoint`` to the
+    """``frame.pair_angles``' cosines: (K,) the cosine between the rays from ``viewpoint`` to the
     points ``first`` and ``first + 1``, each made a unit vector; NaN where a point lies at the
     viewpoint. The same to the bit: summed in einsum's order."""
     out = np.empty(first.shape[0])

@@ -47,7 +47,7 @@ def squared_distances(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
     axis=1)`` to the bit, a column at a time, without the (N, 3) difference (a third of the
     time on a 1280 x 720 frame's points); in one compiled pass where it can be
     (``kernels``)."""
-    if kernels.switch.enabled and points.dtype == np.float64 and points.flags.c_contiguous:
+    if kernels.takes(points):
         return kernels.squared_distances(points, np.ascontiguousarray(centre, np.float64))
     x = points[:, 0] - centre[0]
     y = points[:, 1] - centre[1]

@@ -176,6 +176,11 @@ class Symmetry:
         return described
 
     @staticmethod
+    def declared_in(described: dict | None) -> dict | None:
+        """What the operator declared, as a stored description keeps it (None: nothing)."""
+        return (described or {}).get("declared")
+
+    @staticmethod
     def outdated(described: dict | None) -> bool:
         """Whether a stored description was found by an earlier rule (before the rule's
         version was recorded: the absolute 95 % share, which missed a stud brick's quarter
@@ -186,7 +191,7 @@ class Symmetry:
     def from_description(cls, described: dict, centroid: np.ndarray) -> Symmetry:
         centre = np.asarray(described.get("centre", centroid), np.float64)
         near = np.asarray(described.get("near", np.zeros((0, 3, 3))), np.float64).reshape(-1, 3, 3)
-        declared = described.get("declared")
+        declared = cls.declared_in(described)
         if described.get("kind") == "revolution":
             axis = np.asarray(described["axis"], np.float64)
             rotations = [np.eye(3)]
@@ -265,6 +270,11 @@ class _SelfFit:
     def far(self) -> float:
         return _far(self.distance, self.tolerance)
 
+    @property
+    def kept(self) -> float:
+        """The share of the reference's own points within the tolerance."""
+        return float(np.mean(self.distance < self.tolerance))
+
     def moved(self, surface: Surface, points: np.ndarray, rotation, translation) -> np.ndarray:
         """Distance of each of ``points`` moved by (R, t) to the reference's surface."""
         return surface_distance(surface, points @ rotation.T + translation, "nearest")[0]
@@ -281,8 +291,7 @@ class _SelfFit:
     def nearly(self, distance: np.ndarray) -> bool:
         """Whether points at these distances keep ``NEAR`` of the share the reference's own
         keep within the tolerance."""
-        own = float(np.mean(self.distance < self.tolerance))
-        return float(np.mean(distance < self.tolerance)) >= NEAR * own
+        return float(np.mean(distance < self.tolerance)) >= NEAR * self.kept
 
 
 def _far(distance: np.ndarray, tolerance: float) -> float:
@@ -318,13 +327,34 @@ def _fixed_point(transforms: list[tuple[np.ndarray, np.ndarray]], near: np.ndarr
     return near + offset
 
 
+def _self_noise_gate(scale: float) -> tuple[float, float]:
+    """ICP's noise and gate for a reference refined onto itself."""
+    return 0.002 * scale, 0.3 * scale
+
+
+def _onto_itself(
+    points: np.ndarray,
+    surface: Surface,
+    scale: float,
+    start: np.ndarray,
+    centre: np.ndarray,
+    iterations: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``points`` turned by ``start`` about ``centre``, refined onto the reference's own
+    surface: (rotation, translation)."""
+    translation = _about(start, centre)
+    rotation, translation, _ = icp(
+        points, surface, start, translation, *_self_noise_gate(scale), iterations
+    )
+    return rotation, translation
+
+
 def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> Symmetry:
     """The reference's rotational symmetry (see the module's docstring)."""
     points = surface.points
     principal = Frame.of(points)
     centroid, frame = principal.centroid, principal.axes
     chosen = points[rng.choice(len(points), size=min(512, len(points)), replace=False)]
-    noise, gate = 0.002 * scale, 0.3 * scale
     own = _SelfFit.of(surface, scale)
     # a quick refinement is not yet converged: it may leave a few more points out than FAR
     quick_share = SHARE * (1 - own.far) - QUICK_SLACK
@@ -339,20 +369,16 @@ def find_symmetry(surface: Surface, scale: float, rng: np.random.Generator) -> S
         and still turns about a point near the centroid (a sample's centroid is off by a
         little), and whether it fits: a symmetry. A few iterations on a few points first:
         most starts of most parts lead nowhere."""
-        rotation, translation, _ = icp(
-            chosen[:SYMMETRY_QUICK_POINTS],
-            surface,
-            start,
-            _about(start, centre),
-            noise,
-            gate,
-            SYMMETRY_QUICK,
+        rotation, translation = _onto_itself(
+            chosen[:SYMMETRY_QUICK_POINTS], surface, scale, start, centre, SYMMETRY_QUICK
         )
         moved = chosen[:SYMMETRY_QUICK_POINTS] @ rotation.T + translation
         near, _ = surface_distance(surface, moved, "nearest")
         if np.mean(near < FAR * own.tolerance) < NEAR * quick_share:
             return None
-        rotation, translation, _ = icp(chosen, surface, rotation, translation, noise, gate, 30)
+        rotation, translation, _ = icp(
+            chosen, surface, rotation, translation, *_self_noise_gate(scale), 30
+        )
         drift = np.linalg.norm(rotation @ centroid + translation - centroid)
         if drift > DRIFT * scale or _angle_deg(rotation, np.eye(3)) < SAME_DEG:
             return None
@@ -430,22 +456,11 @@ def declared_symmetry(surface: Surface, scale: float, declared: dict, found: Sym
     rotations generate more than ``MAX_GROUP``."""
     points = surface.points
     own = _SelfFit.of(surface, scale)
-    revolution = declared["kind"] == "revolution" or found.kind == "revolution"
-    if declared["kind"] == "revolution":
-        axis = _unit(declared["axis"])
-        turns = [rotation_vector(axis * np.radians(a)) for a in REVOLUTION_ANGLES_DEG]
-        flips = [rotation_vector(np.pi * _perpendicular(axis))] if declared.get("flip") else []
-    elif "rotations" in declared:
-        turns, flips = [np.asarray(r, np.float64) for r in declared["rotations"]], []
-        axis = found.axis
-    else:
-        axis = _unit(declared["axis"])
-        order = int(declared["order"])
-        turns = [rotation_vector(axis * 2 * np.pi * k / order) for k in range(1, order)]
-        axis, flips = found.axis, []
-    turns = [t for t in turns if _angle_deg(t, np.eye(3)) > SAME_DEG]
+    turns, flips = _declared_turns(declared)
+    # the axis a round part turns about: declared, or found (None: no revolution)
+    axis = _unit(declared["axis"]) if declared["kind"] == "revolution" else found.axis
     if declared["kind"] == "discrete" and found.kind == "revolution":  # a declared flip
-        flips = [t for t in turns if (t @ found.axis) @ found.axis < 0][:1]
+        flips = [t for t in turns if (t @ axis) @ axis < 0][:1]
     centre = _centre(surface, scale, (turns + flips)[:1], found.centroid)
 
     def check(rotations: list[np.ndarray]) -> None:
@@ -454,7 +469,7 @@ def declared_symmetry(surface: Surface, scale: float, declared: dict, found: Sym
             if not own.nearly(distance):
                 raise ValueError(_misfit(turn, distance, own))
 
-    if revolution and axis is not None:  # a round part: every turn about its axis fits
+    if axis is not None:  # a round part: every turn about its axis fits
         check(turns + flips)
         kept = list(found.rotations[1:2]) if found.kind == "revolution" else []  # its flip
         rotations = [np.eye(3)] + (flips[:1] or kept)
@@ -465,6 +480,23 @@ def declared_symmetry(surface: Surface, scale: float, declared: dict, found: Sym
     check([g for g in group[1:] if not _near(g[None], found.rotations).any()])  # products
     near = _distinct_near(list(found.near), group)
     return Symmetry("discrete", centre, group, near=near, declared=declared)
+
+
+def _declared_turns(declared: dict) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The turns a declaration names (a revolution's at ``REVOLUTION_ANGLES_DEG``), none
+    within ``SAME_DEG`` of the identity, and its flip."""
+    flips = []
+    if declared["kind"] == "revolution":
+        axis = _unit(declared["axis"])
+        turns = [rotation_vector(axis * np.radians(a)) for a in REVOLUTION_ANGLES_DEG]
+        if declared.get("flip"):
+            flips = [rotation_vector(np.pi * _perpendicular(axis))]
+    elif "rotations" in declared:
+        turns = [np.asarray(r, np.float64) for r in declared["rotations"]]
+    else:
+        axis, order = _unit(declared["axis"]), int(declared["order"])
+        turns = [rotation_vector(axis * 2 * np.pi * k / order) for k in range(1, order)]
+    return [t for t in turns if _angle_deg(t, np.eye(3)) > SAME_DEG], flips
 
 
 def _rounded(axis: np.ndarray) -> list[float]:
@@ -485,12 +517,8 @@ def _centre(
     lies off the axis where one side was sampled more), else ``centroid``."""
     if not turns:
         return centroid
-    turn = turns[0]
-    points = surface.points
-    rotation, translation, _ = icp(
-        points, surface, turn, _about(turn, centroid), 0.002 * scale, 0.3 * scale, 30
-    )
-    centre = _fixed_point([(rotation, translation)], centroid)
+    transform = _onto_itself(surface.points, surface, scale, turns[0], centroid, 30)
+    centre = _fixed_point([transform], centroid)
     return centre if np.linalg.norm(centre - centroid) <= DRIFT * scale else centroid
 
 
@@ -500,11 +528,10 @@ def _misfit(turn: np.ndarray, distance: np.ndarray, own: _SelfFit) -> str:
     angle = np.degrees(np.linalg.norm(vector))
     axis = ", ".join(f"{v:.3f}" for v in vector / max(np.linalg.norm(vector), 1e-12))
     share = float(np.mean(distance < own.tolerance))
-    kept = float(np.mean(own.distance < own.tolerance))
     return (
         f"the declared symmetry does not fit the part: turned by {angle:.0f} degrees about "
         f"[{axis}], {share:.0%} of its points lie on its surface, where {NEAR:.0%} of its own "
-        f"points' share ({kept:.0%}) is needed. Give the axis in the frame of the points sent"
+        f"points' share ({own.kept:.0%}) is needed. Give the axis in the frame of the points sent"
     )
 
 

@@ -118,7 +118,7 @@ class Catalog:
             if record.missing:
                 why = f"stored without {', '.join(record.missing)}"
             log.info("recomputing reference %r: %s", record.name, why)
-            declared = (record.values.get("symmetry") or {}).get("declared")
+            declared = Symmetry.declared_in(record.values.get("symmetry"))
             reference = self.engine.make_reference(record.name, record.points, symmetry=declared)
         if write_back:
             rewritten = self.store.rewrite(reference, self.model_hash, was=record.sha256)
@@ -291,7 +291,7 @@ class Catalog:
                 existing = self.engine.get(name)
                 if existing is None or existing.points_sha256 != digest:
                     continue
-                if (existing.symmetry or {}).get("declared") == declared.get(name):
+                if Symmetry.declared_in(existing.symmetry) == declared.get(name):
                     same[name] = existing
         self._check_can_add([name for name in digests if name not in same], replace)
         return same

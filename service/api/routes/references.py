@@ -100,7 +100,7 @@ async def register(
     else:
         fields, source = json_object(await request.body()), None
     units = parse(UnitsChoice, {"units": fields.pop("units", units)}).units
-    declared = declared_symmetry(fields.pop("symmetry", None))
+    declared = symmetry_of(fields.pop("symmetry", None))
     poses = settings.gallery.self_check_poses if self_check else 0
     reference, outcome, checks = await limiter.write(
         _register, catalog, settings, fields, source, replace, poses, units, declared
@@ -142,7 +142,7 @@ UNITS_DESCRIPTION = (
 )
 
 
-def declared_symmetry(value: object) -> dict | None:
+def symmetry_of(value: object) -> dict | None:
     """A registration's declared ``symmetry`` (``DeclaredSymmetry``; a form field's JSON text
     decoded), as the engine takes it; None when not given."""
     if isinstance(value, str):
@@ -440,8 +440,7 @@ def warnings(
     if len(near):
         cosines = np.clip((np.trace(near, axis1=1, axis2=2) - 1) / 2, -1, 1)
         turns = ", ".join(f"{a:.0f}" for a in sorted(set(np.round(np.degrees(np.arccos(cosines))))))
-        centre = np.asarray(symmetry.get("centre", np.zeros(3)), np.float64)
-        offered = Symmetry.from_description(symmetry, centre).suggested()
+        offered = Symmetry.from_description(symmetry, np.zeros(3)).suggested()
         example = " or ".join(json.dumps(d) for d in offered[:2]) or SYMMETRY_EXAMPLE
         said.append(
             f"turns of {reference.name} by {turns} degrees nearly fit its own surface (only a "
