@@ -7,7 +7,8 @@
    - The steps one after another on one thread, each its wall and CPU seconds: the augmented
      views for eq. (4) (``view_grids``: drawn, mapped, gridded), the rendered views (``views``:
      render, normals, their grids mapped), distance field and surface, symmetry, the refit of
-     the classifier (``Engine.add``) and the self-check (``self_check_poses`` renders).
+     the classifier (``Engine.add``) and the self-check (``self_check_poses`` renders, and
+     twice as many views of each part it may be taken for: ``Engine.registration_check``).
    - The registration as the service runs it (``make_reference``, its network thread beside
      the geometry; ``add``; the self-check, two renders at a time): wall, the CPU of every
      thread, and its critical path, the busier thread's CPU seconds plus the serial steps:
@@ -102,7 +103,7 @@ def steps(engine: Engine, name: str, mesh: trimesh.Trimesh | None, points, faces
     with timed(spent, "refit"):
         engine.add(reference)
     with timed(spent, "self_check"):
-        engine.self_check(reference, 3, mesh)
+        engine.registration_check(reference, 3, mesh)
     engine.remove(name)
     return {step: {"wall_s": w, "cpu_s": c} for step, (w, c) in spent.items()}
 
@@ -115,7 +116,7 @@ def registration(engine: Engine, name: str, mesh, points, faces, poses: int) -> 
     made = time.perf_counter()
     engine.add(reference)
     added, add_cpu = time.perf_counter(), time.process_time()
-    engine.self_check(reference, poses, mesh)
+    engine.registration_check(reference, poses, mesh)
     done, check_cpu = time.perf_counter(), time.process_time() - add_cpu
     engine.remove(name)
     network = make_all - make_main

@@ -42,7 +42,7 @@ from service.engine.fits import Fit
 from service.engine.frame import Frame, cropped_reason
 from service.engine.grid import grid
 from service.engine.icp import Surface
-from service.engine.look_alikes import doubt, relation
+from service.engine.look_alikes import SUSPECTS, confused, doubt, relation, suspects
 from service.engine.mapping import Mapper
 from service.engine.normalize import has_extent, no_larger, normalize, radius, subsample
 from service.engine.normals import estimate_normals, mesh_normals, orient_by_views
@@ -1122,16 +1122,67 @@ class Engine:
         self, reference: Reference, views: int = 3, mesh: trimesh.Trimesh | None = None
     ) -> list[dict]:
         """The new reference found again, as a cell would meet it: a resampled full cloud and
-        ``views`` single-camera views of it, each in a random pose, against the whole gallery.
-        They are independent of the registered points: a mesh is sampled anew; a cloud's points
-        are jittered by a third of their spacing and a fifth of them dropped. A view is what a
-        camera 6 scales away sees of that sample (the mesh's depth buffer, or hidden-point
-        removal), and the camera's place is its viewpoint. Each check says what was answered
-        and how far its rotation is from the truth, the part's symmetry accounted for."""
-        rng = np.random.default_rng(self.settings.seed + 1)
+        ``views`` single-camera views of it (``_renders``), each in a random pose, against the
+        whole gallery. Each check says what was answered and how far its rotation is from the
+        truth, the part's symmetry accounted for."""
         entry = self._snapshot.entries.get(reference.name)
         if entry is None or entry.reference is not reference:  # not the one the gallery holds
             entry = Entry.of(reference, self.settings.grid_blur)
+
+        def check(kind: str, scene, viewpoint, rotation, result: Alignment) -> dict:
+            return {
+                "render": kind,
+                "label": result.label,
+                "label_ok": result.label == reference.name,
+                "rotation_error_deg": entry.symmetry.distance_deg(result.rotation, rotation),
+                "alignment_error_normalized": result.alignment_error_normalized,
+                "verdict": result.verdict,
+                "confidence": result.confidence,
+                **(self._runner_up(result, scene, viewpoint) if kind == "full" else {}),
+            }
+
+        renders = self._renders(entry, views, mesh, full=True)
+        return self._aligned(renders, check)
+
+    def registration_check(
+        self, reference: Reference, poses: int, mesh: trimesh.Trimesh | None = None
+    ) -> tuple[list[dict], list[str]]:
+        """A registered reference's check (``self_check`` on ``poses`` renders) and the parts
+        it could not tell it from, either way (``look_alikes.confused``, ``taken_for`` on
+        twice as many views of each suspect)."""
+        checks = self.self_check(reference, poses, mesh)
+        taken = self.taken_for(reference, 2 * poses)
+        return checks, sorted({*confused(reference.name, checks), *taken})
+
+    def taken_for(self, reference: Reference, views: int) -> list[str]:
+        """The registration check's other direction: the held parts that ``views`` camera
+        views of, each in a random pose, are now answered as ``reference``, or fitted alike
+        by it (``ALIKE``). Only the ``SUSPECTS`` parts whose rendered views look most like
+        the new one's are rendered (``look_alikes.suspects``; docs/decisions.md#either-way)."""
+        snapshot = self._snapshot
+        name = reference.name
+
+        def taken(kind, scene, viewpoint, rotation, result: Alignment) -> bool:
+            alike = result.runner_up >= ALIKE * result.fit * result.coverage > 0
+            return result.label == name or (result.runner_up_label == name and alike)
+
+        return [
+            other
+            for other in suspects(snapshot, name, SUSPECTS)
+            if any(self._aligned(self._renders(snapshot.entries[other], views), taken))
+        ]
+
+    def _renders(
+        self, entry: Entry, views: int, mesh: trimesh.Trimesh | None = None, full: bool = False
+    ) -> list[tuple[str, np.ndarray, np.ndarray | None, tuple[np.ndarray, np.ndarray]]]:
+        """A registration check's renders of ``entry``'s part: a full cloud (if ``full``) and
+        ``views`` camera views, each (kind, points, camera, pose it is placed at). They are
+        independent of the registered points: a mesh is sampled anew; a cloud's points are
+        jittered by a third of their spacing and a fifth of them dropped. A view is what a
+        camera 6 scales away sees of that sample (the mesh's depth buffer, or hidden-point
+        removal), and the camera's place is its viewpoint."""
+        rng = np.random.default_rng(self.settings.seed + 1)
+        reference = entry.reference
         points = np.asarray(reference.points, dtype=np.float64)
         if mesh is not None:
             sample = np.asarray(trimesh.sample.sample_surface(mesh, len(points), seed=7)[0])
@@ -1145,7 +1196,7 @@ class Engine:
             )
             surface = None
         centroid = sample.mean(axis=0)
-        renders: list[tuple[str, np.ndarray, np.ndarray | None]] = [("full", sample, None)]
+        renders: list[tuple[str, np.ndarray, np.ndarray | None]] = [("full", sample, None)] * full
         for direction in Rotation.random(views, random_state=rng).apply([0.0, 0.0, 1.0]):
             camera = camera_at(centroid, direction, reference.scale)
             if surface is None:
@@ -1153,31 +1204,27 @@ class Engine:
             else:
                 seen = splat_visible(sample, surface, camera, sample_spacing(surface, mesh.area))
             renders.append(("view", sample[seen], camera))
-        # every pose drawn first, in the order one thread drew them; the renders are then
-        # aligned two at a time (their numpy, cKDTree and onnxruntime steps let go of the GIL)
-        poses = [
-            (Rotation.random(random_state=rng).as_matrix(), rng.uniform(-1, 1, 3) * reference.scale)
-            for _ in renders
-        ]
+        # every pose drawn first, in the order one thread drew them
+        return [
+            (*render, (Rotation.random(random_state=rng).as_matrix(),
+                       rng.uniform(-1, 1, 3) * reference.scale))
+            for render in renders
+        ]  # fmt: skip
 
-        def check(render: tuple[str, np.ndarray, np.ndarray | None], pose) -> dict:
-            (kind, cloud, camera), (rotation, translation) = render, pose
+    def _aligned(self, renders, judged: Callable) -> list:
+        """``judged(kind, scene, viewpoint, rotation, answer)`` of each render placed at its
+        pose and aligned against the whole gallery, two at a time (their numpy, cKDTree and
+        onnxruntime steps let go of the GIL)."""
+
+        def one(render) -> object:
+            kind, cloud, camera, (rotation, translation) = render
             scene = cloud @ rotation.T + translation
             viewpoint = None if camera is None else rotation @ camera + translation
             result = self.align(scene, viewpoint=viewpoint)
-            return {
-                "render": kind,
-                "label": result.label,
-                "label_ok": result.label == reference.name,
-                "rotation_error_deg": entry.symmetry.distance_deg(result.rotation, rotation),
-                "alignment_error_normalized": result.alignment_error_normalized,
-                "verdict": result.verdict,
-                "confidence": result.confidence,
-                **(self._runner_up(result, scene, viewpoint) if kind == "full" else {}),
-            }
+            return judged(kind, scene, viewpoint, rotation, result)
 
         with ThreadPoolExecutor(SELF_CHECK_THREADS, thread_name_prefix="self-check") as pool:
-            return list(pool.map(check, renders, poses))
+            return list(pool.map(one, renders))
 
     def _runner_up(self, result: Alignment, scene: np.ndarray, viewpoint) -> dict:
         """The other part that fitted a render of a new reference best, and how well once the

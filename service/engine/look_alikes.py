@@ -19,10 +19,19 @@ from __future__ import annotations
 from collections import defaultdict
 from collections.abc import Iterable
 from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
 
 from service.engine.answer import Alignment
 from service.engine.reference import Reference
 from service.engine.tuning import ALIKE
+
+if TYPE_CHECKING:
+    from service.engine.entry import Snapshot
+
+SUSPECTS = 3  # held parts whose views the registration check renders (``Engine.taken_for``)
+SIZES = (0.5, 2.0)  # ... among those this many times the new part's scale
 
 
 def relation(references: Iterable[Reference]) -> dict[str, tuple[str, ...]]:
@@ -64,6 +73,27 @@ def told_from(name: str, check: dict) -> str | None:
         return check["label"]
     alike = (check.get("runner_up_fit") or 0.0) >= ALIKE
     return check.get("runner_up") if alike else None
+
+
+def suspects(snapshot: Snapshot, name: str, count: int = SUSPECTS) -> list[str]:
+    """The ``count`` held parts of a size like ``name``'s whose rendered views look most like
+    its own: the mean, over a part's views, of the cosine to the nearest of ``name``'s (the
+    features the nearest-view proposals compare). Those the gallery may now answer as
+    ``name`` (docs/decisions.md#either-way)."""
+    labels = list(snapshot.entries)
+    row = labels.index(name)
+    owner = snapshot.view_owner
+    mine = snapshot.view_keys[owner == row]
+    if not len(mine):
+        return []
+    nearest = (snapshot.view_keys @ mine.T).max(axis=1)
+    starts = np.flatnonzero(np.diff(owner, prepend=-1))  # rows are in blocks
+    counts = np.diff(np.append(starts, len(owner)))
+    likeness = np.add.reduceat(nearest, starts) / counts
+    ratio = snapshot.scales[owner[starts]] / snapshot.scales[row]
+    plausible = (ratio >= SIZES[0]) & (ratio <= SIZES[1]) & (owner[starts] != row)
+    order = [i for i in np.argsort(-likeness) if plausible[i]]
+    return [labels[owner[starts[i]]] for i in order[:count]]
 
 
 def same_points(reference: Reference, others: Iterable[Reference]) -> list[str]:

@@ -22,7 +22,6 @@ import trimesh
 
 from service import memory
 from service.engine.engine import Engine
-from service.engine.look_alikes import confused
 from service.engine.reference import Reference, points_sha256
 from service.engine.symmetry import Symmetry
 from service.errors import ReferenceExists
@@ -195,8 +194,10 @@ class Catalog:
             reference = made[part.name]
             checks = None
             if self_check_poses:
-                checks = self.engine.self_check(reference, self_check_poses, part.mesh)
-                if others := confused(part.name, checks):
+                checks, others = self.engine.registration_check(
+                    reference, self_check_poses, part.mesh
+                )
+                if others:
                     reference = self.note_look_alikes(part.name, others) or reference
             outcome = CREATED if previous[part.name] is None else REPLACED
             results.append((reference, outcome, checks))

@@ -17,9 +17,12 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from service.engine.sampling import sample_surface
+from service.settings import GallerySettings, Settings
 from tests.camera import INTRINSICS, depth_image
 from tests.conftest import empty_server
 from tests.meshes import pybullet_mesh
+from tests.servers import Server
+from training.objects import load_manifest, load_object_meshes
 
 ROTATION = Rotation.from_euler("zyx", [40, 25, -60], degrees=True).as_matrix()
 TRANSLATION = np.array([0.02, -0.01, 0.45])
@@ -161,3 +164,28 @@ def test_a_part_the_check_cannot_tell_apart_is_noted_and_kept(tmp_path, mug_clou
         assert again.client.get("/references/mug-scan").json()["look_alikes"] == []
     finally:
         again.stop()
+
+
+def test_a_part_registered_after_its_look_alike_is_noted(tmp_path):
+    """random-075 registered beside the shipped gallery, which holds random-250, as the
+    evaluation registers it: its own renders are answered as itself, and random-250 is not
+    its runner-up, but views of random-250 are now answered as random-075 or fitted alike by
+    it. The check's other direction names the pair (docs/decisions.md#either-way)."""
+    spec = [s for s in load_manifest() if s.name == "random-075"]
+    mesh = load_object_meshes(spec)["random-075"].export(file_type="stl")
+    server = Server(Settings(gallery=GallerySettings(data_dir=tmp_path, self_check_poses=3)))
+    try:
+        body = register(server.client, "random-075", params={}, file=("075.stl", mesh))
+        held = server.client.get("/references/random-250").json()
+    finally:
+        server.stop()
+    assert {check["label"] for check in body["self_check"]} == {"random-075"}
+    assert body["self_check"][0]["runner_up"] != "random-250"
+    assert body["look_alikes"] == ["random-250"], body["warnings"]
+    said = [w for w in body["warnings"] if "could not tell" in w]
+    assert said == [
+        "the registration check could not tell random-075 and random-250 apart: views of "
+        "random-250 were answered as random-075. /align answers ambiguous where both fit "
+        "alike (never a match); send candidates naming the part the cell expects where you can"
+    ]
+    assert held["look_alikes"] == ["random-075"]

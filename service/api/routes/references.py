@@ -403,6 +403,15 @@ def look_alike_warnings(
             f"alike. /align answers ambiguous where {other} fits as well (never a match); send "
             "candidates naming the part the cell expects where you can"
         )
+    for other in engine.look_alikes(name):  # e.g. the check's other direction
+        if other in named:
+            continue
+        named.add(other)
+        said.append(
+            f"the registration check could not tell {name} and {other} apart: views of "
+            f"{other} were answered as {name}. /align answers ambiguous where both fit alike "
+            "(never a match); send candidates naming the part the cell expects where you can"
+        )
     return said, named
 
 
