@@ -43,6 +43,7 @@ from evaluation.metrics import auroc, expected_calibration_error
 from service.engine.confidence import FEATURES, Calibration
 from service.engine.engine import Engine
 from service.engine.mapping import file_sha256
+from service.engine.tuning import BIN_ACCEPT
 from service.settings import MODELS_DIR
 from training.objects import load_manifest, load_object_meshes
 
@@ -117,11 +118,20 @@ def fit_calibration(rows: list[dict], features: tuple[str, ...] = FEATURES) -> C
     return Calibration(features, solved.x[:-1], float(solved.x[-1]), mean, spread, {})
 
 
+def matched(rows: list[dict], scores: np.ndarray, thresholds) -> np.ndarray:
+    """Which answers the service makes a "match" at these ``thresholds`` (one, or one a
+    row): an answer of a bin's reading from ``BIN_ACCEPT`` on, never one whose look-alikes fit
+    alike (``Engine.judge``, ``look_alikes.doubt``)."""
+    floor = np.array([BIN_ACCEPT if row.get("in_bin") else 0.0 for row in rows])
+    doubted = np.array([bool(row.get("doubted")) for row in rows], dtype=bool)
+    return (scores >= np.maximum(thresholds, floor)) & ~doubted
+
+
 def judge(calibration: Calibration, rows: list[dict], accept: float) -> dict:
     """How well the calibration does on ``rows``."""
     scores = np.array([calibration.confidence(row) for row in rows])
     right = np.array([row["right"] for row in rows])
-    accepted = scores >= accept
+    accepted = matched(rows, scores, accept)
     return {
         "answers": len(rows),
         "right": float(right.mean()),
@@ -140,7 +150,7 @@ def acceptance(calibration: Calibration, rows: list[dict]) -> float:
     scores = np.array([calibration.confidence(row) for row in rows])
     right = np.array([row["right"] for row in rows])
     for threshold in np.arange(0.5, 0.995, 0.01):
-        accepted = scores >= threshold
+        accepted = matched(rows, scores, threshold)
         if accepted.any() and right[accepted].mean() >= PRECISION:
             return round(float(threshold), 2)
     return 0.99
@@ -181,7 +191,8 @@ def transfer_report(rows: list[dict], scores: np.ndarray, thresholds: np.ndarray
 
     def figures(chosen: np.ndarray) -> dict:
         right = np.array([rows[i]["right"] for i in np.flatnonzero(chosen)], dtype=bool)
-        score, accepted = scores[chosen], scores[chosen] >= thresholds[chosen]
+        score = scores[chosen]
+        accepted = matched([rows[i] for i in np.flatnonzero(chosen)], score, thresholds[chosen])
         return {
             "answers": int(chosen.sum()),
             "right": float(right.mean()) if len(right) else None,

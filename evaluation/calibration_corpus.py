@@ -34,6 +34,7 @@ from tqdm import tqdm
 
 from evaluation.camera import DEFAULT_CAMERA, PROFILES, cast_profiled
 from evaluation.cases import NO_MATCH, Case, make_cases, uniform_rotations
+from evaluation.evaluate_mapping import checked
 from evaluation.frames import mesh_radius
 from evaluation.metrics import succeeds
 from evaluation.scenes import VIEWPOINT, placed, stable_poses, surface_centroid, table_scene
@@ -193,6 +194,8 @@ def row(engine: Engine, case: Case, viewpoint: bool, leave_out: bool, truth=None
         "verdict": found.verdict,
         "shipped": found.confidence,
         "ambiguous": found.ambiguous,
+        "in_bin": found.in_bin,  # a "match" from BIN_ACCEPT only
+        "doubted": bool(found.look_alikes),  # its look-alikes fit alike: never a "match"
         "hypothesis": found.hypothesis,
         "label": found.label,
     }
@@ -219,6 +222,8 @@ def group_rows(
             )
         )
     engine.add_many(references)
+    meshes = {part.name: mesh for number, (part, mesh) in enumerate(parts) if number % 2 == 0}
+    checked(engine, [part.name for part, _ in parts], meshes)  # as the service registers them
     rows: list[dict] = []
     try:
         for part, mesh in tqdm(parts, desc=group, leave=False):

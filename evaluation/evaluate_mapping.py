@@ -34,7 +34,7 @@ from service.engine.normalize import subsample
 from service.engine.registration import kabsch, paper_least_squares, ransac
 from service.engine.sampling import sample_surface_faces
 from service.gallery.gallery_file import load_gallery
-from service.settings import MODELS_DIR, EngineSettings
+from service.settings import MODELS_DIR, EngineSettings, GallerySettings
 from training.objects import load_manifest, load_object_meshes
 
 SOLVERS = ("paper", "kabsch", "ransac")
@@ -45,7 +45,8 @@ def prepare_engine(
     model: Path, gallery: Path, unseen_specs, as_mesh: bool = True
 ) -> tuple[Engine, dict]:
     """The shipped gallery, plus every unseen object registered as a user would: as its mesh
-    (an STL upload), or with ``as_mesh=False`` as the 2,048-point cloud sampled on it."""
+    (an STL upload), or with ``as_mesh=False`` as the 2,048-point cloud sampled on it, and
+    checked as the service checks it (``checked``)."""
     calibration = Path(model).parent / "confidence.json"  # shipped beside the model
     engine = Engine(
         Mapper(model, use_cuda=False),
@@ -64,7 +65,21 @@ def prepare_engine(
             )
         )
     engine.load(references)
+    checked(engine, [spec.name for spec in unseen_specs], meshes if as_mesh else {})
     return engine, meshes
+
+
+def checked(engine: Engine, names: list[str], meshes: dict) -> None:
+    """Check each of ``names`` as ``POST /references`` does after it is added (its
+    registration check, with its mesh where it has one), noting the parts it could not tell
+    it from, either way, as its look-alikes."""
+    poses = GallerySettings().self_check_poses
+    for name in names:
+        reference = engine.get(name)
+        _, others = engine.registration_check(reference, poses, meshes.get(name))
+        if others:
+            alike = {other: engine.get(other).points_sha256 for other in others}
+            engine.annotate(reference.with_(look_alikes=alike))
 
 
 def solve(solver: str, model: np.ndarray, scene: np.ndarray, threshold: float, rng):

@@ -46,6 +46,7 @@ class Alignment:
     ambiguous: bool = False
     alternatives: list[AlternativePose] = field(default_factory=list)
     points_set_aside: int = 0  # observed points left out as support plane, strays, clutter
+    in_bin: bool = False  # the answer is of a bin's reading: its floor and walls set aside
     fit: float = 0.0  # share of observed points near the reference's surface at the pose
     coverage: float = 0.0  # share of what the camera should see of it that was observed
     runner_up: float = 0.0  # the best fit x coverage of any other part

@@ -408,8 +408,8 @@ class Engine:
             if in_bin is not None:
                 answer, chosen = self.better(query, in_bin, answer, chosen, whole / len(scene))
         if answer.verdict != "no_match":  # 8. How far to trust it.
-            binned = in_bin is not None and chosen is in_bin
-            self.judge(answer, min_confidence, query, flatness(chosen.points), binned)
+            answer.in_bin = in_bin is not None and chosen is in_bin
+            self.judge(answer, min_confidence, query, flatness(chosen.points), answer.in_bin)
             doubt(answer)  # among look-alikes that fit alike, the label is a guess
         answer.timings_ms = query.clock.total()
         return answer

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from evaluation.calibrate import family_of, held_out, transfer_report
+from evaluation.calibrate import family_of, held_out, matched, transfer_report
 from evaluation.camera import PROFILES, SensorProfile, cast, cast_profiled
 from evaluation.scenes import PART, TABLE, placed, table_scene
 from service.engine.confidence import measures
+from service.engine.tuning import BIN_ACCEPT
 
 pytest.importorskip("open3d")
 corpus = pytest.importorskip("evaluation.calibration_corpus")
@@ -112,3 +113,17 @@ def test_rows_are_reported_in_the_families_of_the_targets():
     assert family_of({"family": "sensor"}) == "view"
     assert family_of({"family": "table"}) == "table"
     assert family_of({"family": "left-out"}) == "left-out"
+
+
+def test_a_match_is_counted_as_the_service_makes_one():
+    # an answer of a bin's reading is a "match" from BIN_ACCEPT only, and one whose
+    # look-alikes fit alike never is (Engine.judge, look_alikes.doubt)
+    rows = [{}, {"in_bin": True}, {"in_bin": True}, {"doubted": True}, {"in_bin": False}]
+    scores = np.array([0.82, 0.82, BIN_ACCEPT, 0.99, 0.79])
+    assert matched(rows, scores, 0.8).tolist() == [True, False, True, False, False]
+    assert matched(rows, scores, np.full(5, 0.9)).tolist() == [False, False, False, False, False]
+    right = [True, True, True, False, True]
+    about = [{"right": r, "family": "sensor", "group": "a"} for r in right]
+    answers = [row | more for row, more in zip(rows, about, strict=True)]
+    report = transfer_report(answers, scores, np.full(5, 0.8))
+    assert report["all"]["precision"] == 1.0 and report["all"]["coverage"] == 0.5
