@@ -65,6 +65,7 @@ from service.engine.tuning import (
     INSTANCE_FLOOR,
     KEEP_SHARE,
     LINE,
+    LOOK_ALIKE,
     MAX_ALTERNATIVES,
     MIN_SEGMENT,
     MORE_VIEWS_BELOW,
@@ -674,7 +675,7 @@ class Engine:
         self, query: Query, search: Search, fits: list[Fit], winner: Fit
     ) -> list[tuple[str, Fit]]:
         """The winner's look-alikes among the allowed parts (``service.engine.look_alikes``)
-        that fit within ``ALIKE`` of its fit x coverage, each at its best pose: one of the same
+        that fit within ``LOOK_ALIKE`` of its fit x coverage, each at its best pose: one of the same
         points at the winner's own; another searched as the winner was (its best hypotheses
         refined, then finished), had the search not verified it."""
         snapshot = query.snapshot
@@ -691,7 +692,7 @@ class Engine:
                 best = dataclasses.replace(winner, row=row)
             else:
                 best = self._searched_as_winner(query, search, fits, row)
-            if best is not None and best.score >= ALIKE * winner.score:
+            if best is not None and best.score >= LOOK_ALIKE * winner.score:
                 alike.append((labels[row], best))
         return alike
 

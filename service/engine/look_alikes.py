@@ -9,7 +9,7 @@ part's ``points_sha256`` then, so it lapses once that part is replaced by other 
 relation is symmetric, so both descriptions list it.
 
 ``/align`` (``Engine.decide``) compares the winner with its look-alikes: one that fits within
-``tuning.ALIKE`` of the winner's fit x coverage makes the label a guess among them, so the
+``tuning.LOOK_ALIKE`` of the winner's fit x coverage makes the label a guess among them, so the
 answer is ``ambiguous``, the look-alikes' poses are its alternatives (with their labels), its
 confidence is shared among them and the verdict is no "match" (``doubt``).
 """

@@ -83,6 +83,9 @@ RESIDUAL_ALIKE = 1.15  # a turned pose this much farther from the surface is no 
 # --- 8. Decide (docs/decisions.md#decide) ---------------------------------------------------------
 DIFFERENT_DEG = 10.0  # poses this far apart (symmetry accounted for) are different answers
 ALIKE = 0.9  # ... and fit alike within this share of the best's fit x coverage
+# a registered look-alike fitting within this share of the winner makes the label a guess
+# (a full cloud of either of a pair fits the other 0.83-0.95; docs/decisions.md#either-way)
+LOOK_ALIKE = 0.97
 MAX_ALTERNATIVES = 3
 # another pose closer than this share of the scale is no doubt: the answer would still be
 # precise (ADD-S under 0.02 of the diameter) were it the truth

@@ -171,12 +171,14 @@ def test_a_part_registered_after_its_look_alike_is_noted(tmp_path):
     evaluation registers it: its own renders are answered as itself, and random-250 is not
     its runner-up, but views of random-250 are now answered as random-075 or fitted alike by
     it. The check's other direction names the pair (docs/decisions.md#either-way)."""
-    spec = [s for s in load_manifest() if s.name == "random-075"]
-    mesh = load_object_meshes(spec)["random-075"].export(file_type="stl")
+    meshes = load_object_meshes([s for s in load_manifest() if s.name in PAIR])
+    mesh = meshes["random-075"].export(file_type="stl")
+    whole = sample_surface(meshes["random-250"], 2048, seed=3) @ ROTATION.T + TRANSLATION
     server = Server(Settings(gallery=GallerySettings(data_dir=tmp_path, self_check_poses=3)))
     try:
         body = register(server.client, "random-075", params={}, file=("075.stl", mesh))
         held = server.client.get("/references/random-250").json()
+        answer = server.client.post("/align", json={"points": whole.tolist()}).json()
     finally:
         server.stop()
     assert {check["label"] for check in body["self_check"]} == {"random-075"}
@@ -189,3 +191,10 @@ def test_a_part_registered_after_its_look_alike_is_noted(tmp_path):
         "alike (never a match); send candidates naming the part the cell expects where you can"
     ]
     assert held["look_alikes"] == ["random-075"]
+    # a whole cloud of random-250 tells them apart: random-075 fits it 0.83-0.95 as well, under
+    # LOOK_ALIKE (docs/decisions.md#either-way)
+    assert answer["label"] == "random-250" and answer["verdict"] == "match", answer["reasons"]
+    assert not labelled(answer)
+
+
+PAIR = ("random-250", "random-075")
