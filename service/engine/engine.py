@@ -1197,7 +1197,8 @@ class Engine:
             )
             surface = None
         centroid = sample.mean(axis=0)
-        renders: list[tuple[str, np.ndarray, np.ndarray | None]] = [("full", sample, None)] * full
+        renders: list[tuple[str, np.ndarray, np.ndarray | None]] = []
+        renders += [("full", sample, None)] if full else []
         for direction in Rotation.random(views, random_state=rng).apply([0.0, 0.0, 1.0]):
             camera = camera_at(centroid, direction, reference.scale)
             if surface is None:

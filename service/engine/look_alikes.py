@@ -3,10 +3,11 @@
 Two references look alike when their points are the same (one ``points_sha256``: the same
 part registered under two names), or when the registration check of one could not tell it
 from the other: any of its renders answered as the other part, or with the other fitting
-alike. That claim
-is stored with the reference that made it (``Reference.look_alikes``), naming the other
-part's ``points_sha256`` then, so it lapses once that part is replaced by other points; the
-relation is symmetric, so both descriptions list it.
+alike; or, the other way, any view of a held part (one of the ``suspects``) answered as the
+new one, or fitted alike by it (``Engine.taken_for``). That claim is stored with the
+reference that made it (``Reference.look_alikes``), naming the other part's
+``points_sha256`` then, so it lapses once that part is replaced by other points; the relation
+is symmetric, so both descriptions list it.
 
 ``/align`` (``Engine.decide``) compares the winner with its look-alikes: one that fits within
 ``tuning.LOOK_ALIKE`` of the winner's fit x coverage makes the label a guess among them, so the
