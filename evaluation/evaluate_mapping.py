@@ -75,11 +75,9 @@ def checked(engine: Engine, names: list[str], meshes: dict) -> None:
     it from, either way, as its look-alikes."""
     poses = GallerySettings().self_check_poses
     for name in names:
-        reference = engine.get(name)
-        _, others = engine.registration_check(reference, poses, meshes.get(name))
+        _, others = engine.registration_check(engine.get(name), poses, meshes.get(name))
         if others:
-            alike = {other: engine.get(other).points_sha256 for other in others}
-            engine.annotate(reference.with_(look_alikes=alike))
+            engine.annotate(engine.claiming(name, others))
 
 
 def solve(solver: str, model: np.ndarray, scene: np.ndarray, threshold: float, rng):

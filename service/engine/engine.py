@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
@@ -339,6 +339,19 @@ class Engine:
             }
             alike = relation(e.reference for e in entries.values())
             self._snapshot = dataclasses.replace(snapshot, entries=entries, look_alikes=alike)
+
+    def claiming(self, name: str, others: Iterable[str]) -> Reference | None:
+        """The reference ``name`` claiming the held ``others`` as look-alikes besides what it
+        claims already, each named with its points now (``service.engine.look_alikes``);
+        None when ``name`` is not held. Stored nowhere: ``annotate`` holds it."""
+        reference = self.get(name)
+        if reference is None:
+            return None
+        claims = dict(reference.look_alikes or {})
+        for other in others:
+            if (held := self.get(other)) is not None and other != name:
+                claims[other] = held.points_sha256
+        return reference.with_(look_alikes=claims)
 
     def get(self, name: str) -> Reference | None:
         entry = self._snapshot.entries.get(name)

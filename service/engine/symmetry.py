@@ -273,7 +273,11 @@ class _SelfFit:
     @property
     def kept(self) -> float:
         """The share of the reference's own points within the tolerance."""
-        return float(np.mean(self.distance < self.tolerance))
+        return self.within(self.distance)
+
+    def within(self, distance: np.ndarray) -> float:
+        """The share of points at these distances within the tolerance."""
+        return float(np.mean(distance < self.tolerance))
 
     def moved(self, surface: Surface, points: np.ndarray, rotation, translation) -> np.ndarray:
         """Distance of each of ``points`` moved by (R, t) to the reference's surface."""
@@ -291,7 +295,7 @@ class _SelfFit:
     def nearly(self, distance: np.ndarray) -> bool:
         """Whether points at these distances keep ``NEAR`` of the share the reference's own
         keep within the tolerance."""
-        return float(np.mean(distance < self.tolerance)) >= NEAR * self.kept
+        return self.within(distance) >= NEAR * self.kept
 
 
 def _far(distance: np.ndarray, tolerance: float) -> float:
@@ -527,7 +531,7 @@ def _misfit(turn: np.ndarray, distance: np.ndarray, own: _SelfFit) -> str:
     vector = Rotation.from_matrix(turn).as_rotvec()
     angle = np.degrees(np.linalg.norm(vector))
     axis = ", ".join(f"{v:.3f}" for v in vector / max(np.linalg.norm(vector), 1e-12))
-    share = float(np.mean(distance < own.tolerance))
+    share = own.within(distance)
     return (
         f"the declared symmetry does not fit the part: turned by {angle:.0f} degrees about "
         f"[{axis}], {share:.0%} of its points lie on its surface, where {NEAR:.0%} of its own "

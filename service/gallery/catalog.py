@@ -302,14 +302,9 @@ class Catalog:
         ``others`` (``service.engine.look_alikes``, with their points now); the reference as
         noted, or None when it changed meanwhile (replaced, removed, or another replica's)."""
         with self._write_lock:
-            reference = self.engine.get(name)
-            if reference is None:
+            noted = self.engine.claiming(name, others)
+            if noted is None:
                 return None
-            claims = dict(reference.look_alikes or {})
-            for other in others:
-                if (held := self.engine.get(other)) is not None and other != name:
-                    claims[other] = held.points_sha256
-            noted = reference.with_(look_alikes=claims)
             checksum = self.store.rewrite(noted, self.model_hash, was=self._held.get(name, ""))
             if checksum is None:
                 return None
