@@ -157,6 +157,9 @@ def acceptance(calibration: Calibration, rows: list[dict]) -> float:
 
 
 GROUP_FAMILIES = ("full", "view", "table", "bin", "left-out", "foreign", "junk")
+# answers of a registered part (its precision is the target's) and of one that is not (every
+# "match" there is a false accept): docs/decisions.md#registered-or-not
+REGISTERED, NOT_REGISTERED = GROUP_FAMILIES[:4], GROUP_FAMILIES[4:]
 FULL_KINDS = ("so3", "noisy", "sparse", "partial", "full", "paper-poses")
 
 
@@ -205,7 +208,11 @@ def transfer_report(rows: list[dict], scores: np.ndarray, thresholds: np.ndarray
 
     families = np.array([family_of(row) for row in rows])
     groups = np.array([row["group"] for row in rows])
-    report = {"all": figures(np.ones(len(rows), dtype=bool))}
+    report = {
+        "all": figures(np.ones(len(rows), dtype=bool)),
+        "registered": figures(np.isin(families, REGISTERED)),
+        "not_registered": figures(np.isin(families, NOT_REGISTERED)),
+    }
     present = [family for family in GROUP_FAMILIES if (families == family).any()]
     report["families"] = {family: figures(families == family) for family in present}
     report["groups"] = {g: figures(groups == g) for g in sorted(set(groups))}
@@ -215,7 +222,8 @@ def transfer_report(rows: list[dict], scores: np.ndarray, thresholds: np.ndarray
 def print_report(report: dict) -> None:
     print(f"{'held out':14s} {'answers':>7s} {'right':>6s} {'ece':>6s} {'auroc':>6s} "
           f"{'cover':>6s} {'prec':>6s} {'false':>6s}")  # fmt: skip
-    lines = [("all", report["all"])] + list(report["families"].items())
+    lines = [(name, report[name]) for name in ("all", "registered", "not_registered")]
+    lines += list(report["families"].items())
     for name, figures in lines + list(report["groups"].items()):
         cells = [figures[k] for k in ("right", "ece", "auroc", "coverage", "precision",
                                       "false_accepts")]  # fmt: skip

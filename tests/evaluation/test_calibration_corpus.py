@@ -127,3 +127,19 @@ def test_a_match_is_counted_as_the_service_makes_one():
     answers = [row | more for row, more in zip(rows, about, strict=True)]
     report = transfer_report(answers, scores, np.full(5, 0.8))
     assert report["all"]["precision"] == 1.0 and report["all"]["coverage"] == 0.5
+
+
+def test_a_part_not_registered_counts_as_a_false_accept_not_against_precision():
+    # a registered part's answers give the precision; an answer of a part not registered
+    # (left out, foreign, junk) can only be wrong, and its "match" is a false accept
+    answers = [
+        {"right": True, "family": "sensor", "group": "a"},
+        {"right": True, "family": "table", "group": "a"},
+        {"right": False, "family": "so3", "left_out": True, "group": "a"},
+        {"right": False, "family": "junk", "group": "a"},
+    ]
+    report = transfer_report(answers, np.array([0.95, 0.95, 0.95, 0.5]), np.full(4, 0.9))
+    assert report["registered"]["precision"] == 1.0
+    assert report["registered"]["answers"] == 2
+    assert report["not_registered"]["false_accepts"] == 0.5
+    assert report["all"]["precision"] == 2 / 3
