@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from evaluation import frames as whole
 from evaluation.calibrate import PRECISION, fit_calibration, judge
+from evaluation.evaluate_mapping import checked
 from evaluation.metrics import add_s, diameter
 from service.api.clouds import organized
 from service.engine.confidence import (
@@ -60,8 +61,9 @@ ELIGIBLE_EACH = 10  # the instances that may be a match get their own fit with t
 
 
 def gallery_engine(parts: list[whole.FramePart]) -> Engine:
-    """An engine with every part registered from its rescaled mesh: the chain's calibration,
-    no scene calibration (an instance's confidence is the chain's)."""
+    """An engine with every part registered from its rescaled mesh and checked as ``POST
+    /references`` checks it, its look-alikes named: the chain's calibration, no scene
+    calibration (an instance's confidence is the chain's)."""
     settings = Settings()
     chain = Calibration.load(settings.confidence_path)
     engine = Engine(Mapper.from_settings(settings.model), settings.engine, chain)
@@ -72,6 +74,9 @@ def gallery_engine(parts: list[whole.FramePart]) -> Engine:
             engine.make_reference(part.name, points, mesh=part.mesh, face_index=faces)
         )
     engine.load(references)
+    # an instance its look-alikes fit alike is never a match: a gallery without them named
+    # had its threshold set by them (docs/decisions.md#detections-counted-as-served)
+    checked(engine, [part.name for part in parts], {part.name: part.mesh for part in parts})
     return engine
 
 
@@ -113,7 +118,8 @@ def rows_of(
         if right:
             used.add(best)
         rows.append({**evidence, "right": bool(right), "label": answer.label,
-                     "family": frame.family, "frame": frame.stem})  # fmt: skip
+                     "family": frame.family, "frame": frame.stem,
+                     "doubted": bool(answer.look_alikes)})  # fmt: skip
     return rows
 
 
@@ -162,11 +168,13 @@ def fitted(rows: list[dict], check: list[dict], more: tuple[str, ...] = ()) -> C
 
 
 def served(calibration: Calibration, rows: list[dict], threshold: float) -> np.ndarray:
-    """Which of ``rows`` ``Scan.judge`` makes a "match" at ``threshold``: ``may_match``, and
-    the points a match needs (those the evidence counts in its segment)."""
+    """Which of ``rows`` ``Scan.judge`` makes a "match" at ``threshold``: ``may_match``, the
+    points a match needs (those the evidence counts in its segment), and no look-alike fitting
+    alike (``look_alikes.doubt``)."""
     scores = [calibration.confidence(row) for row in rows]
     return np.array(
         [row["points"] >= np.log10(MATCH_POINTS) and may_match(row, score, threshold)
+         and not row.get("doubted")
          for row, score in zip(rows, scores, strict=True)], dtype=bool,
     )  # fmt: skip
 

@@ -39,6 +39,14 @@ def test_what_is_served_needs_the_points_and_the_chains_word():
     assert served(trusting, rows, 0.5).tolist() == [True, False, False]
 
 
+def test_an_instance_its_look_alikes_fit_alike_is_never_served():
+    # Scan.judge doubts it (look_alikes.doubt): ambiguous, never a match, however sure
+    calibration = by_chain()
+    rows = [row(0.99, 1000, True), {**row(0.99, 1000, False), "doubted": True}]
+    assert served(calibration, rows, 0.5).tolist() == [True, False]
+    assert acceptance(calibration, rows) == 0.5
+
+
 def test_the_threshold_is_the_lowest_where_what_is_served_is_right():
     calibration = by_chain()
     # a wrong instance the chain is 0.745 sure of, one on too few points at 0.95 (never served)
