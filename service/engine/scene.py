@@ -596,23 +596,33 @@ class Scan:
     def joined(self, labels: np.ndarray, failed: list[int], near: set, most: int) -> list:
         """The failed segments that ``near`` pairs, each pair searched as one region (no wider
         than ``JOIN_SCALES`` of the largest part), ``MAX_JOINS`` at most: a part a jump in
-        depth cut in two. A pair whose points were claimed since is skipped."""
+        depth cut in two; then each failed segment with all its failed neighbours, where it
+        has two or more, as many at most: a part cut in three
+        (docs/decisions.md#a-part-cut-in-three). A region whose points were claimed since is
+        skipped."""
+        pairs = sorted((a, b) for a, b in near if a in failed and b in failed)
+        neighbours: dict[int, set[int]] = {}
+        for a, b in pairs:
+            neighbours.setdefault(a, set()).add(b)
+            neighbours.setdefault(b, set()).add(a)
+        stars = [(a, *sorted(n)) for a, n in sorted(neighbours.items()) if len(n) >= 2]
         found: list[Instance] = []
-        joins = 0
-        for a, b in sorted((a, b) for a, b in near if a in failed and b in failed):
-            region = np.flatnonzero(((labels == a) | (labels == b)) & self.free)
-            if len(found) >= most or joins == MAX_JOINS:
-                break
-            if not self.worth_searching(region):  # few points, or none left free
-                continue
-            if radius(self.frame.points[region]) > JOIN_SCALES * self.sizes[1]:
-                continue
-            if not self.in_time():
-                return found
-            joins += 1
-            instance = self.instance(region)
-            if instance is not None:
-                self.take(instance, found)
+        for ways in (pairs, stars):
+            joins = 0
+            for joined in ways:
+                if len(found) >= most or joins == MAX_JOINS:
+                    break
+                region = np.flatnonzero(np.isin(labels, joined) & self.free)
+                if not self.worth_searching(region):  # few points, or none left free
+                    continue
+                if radius(self.frame.points[region]) > JOIN_SCALES * self.sizes[1]:
+                    continue
+                if not self.in_time():
+                    return found
+                joins += 1
+                instance = self.instance(region)
+                if instance is not None:
+                    self.take(instance, found)
         return found
 
     def with_fragments(
