@@ -605,14 +605,17 @@ class Scan:
         for a, b in pairs:
             neighbours.setdefault(a, set()).add(b)
             neighbours.setdefault(b, set()).add(a)
-        stars = [(a, *sorted(n)) for a, n in sorted(neighbours.items()) if len(n) >= 2]
+        stars: dict[frozenset, tuple] = {}  # three segments all near each other: one star
+        for a, n in sorted(neighbours.items()):
+            if len(n) >= 2:
+                stars.setdefault(frozenset({a, *n}), (a, *sorted(n)))
         found: list[Instance] = []
-        for ways in (pairs, stars):
+        for ways in (pairs, list(stars.values())):
             joins = 0
-            for joined in ways:
+            for group in ways:
                 if len(found) >= most or joins == MAX_JOINS:
                     break
-                region = np.flatnonzero(np.isin(labels, joined) & self.free)
+                region = np.flatnonzero(np.isin(labels, group) & self.free)
                 if not self.worth_searching(region):  # few points, or none left free
                     continue
                 if radius(self.frame.points[region]) > JOIN_SCALES * self.sizes[1]:
