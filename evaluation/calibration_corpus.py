@@ -209,10 +209,12 @@ def group_rows(
     seed: int,
 ) -> list[dict]:
     """Register ``parts`` beside what ``engine`` holds, answer every case, unregister them."""
-    references = []
+    references, meshes = [], {}  # half registered as meshes, half as clouds
     for number, (part, mesh) in enumerate(parts):
         points, faces = sample_surface_faces(mesh, 2048, 0)
-        as_mesh = number % 2 == 0
+        if number % 2 == 0:
+            meshes[part.name] = mesh
+        as_mesh = part.name in meshes
         references.append(
             engine.make_reference(
                 part.name,
@@ -222,7 +224,6 @@ def group_rows(
             )
         )
     engine.add_many(references)
-    meshes = {part.name: mesh for number, (part, mesh) in enumerate(parts) if number % 2 == 0}
     checked(engine, [part.name for part, _ in parts], meshes)  # as the service registers them
     rows: list[dict] = []
     try:

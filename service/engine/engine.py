@@ -1055,8 +1055,7 @@ class Engine:
         ratio = size / np.maximum(snapshot.view_radii, 1e-12)
         usable = (ratio >= low) & (ratio <= high) & np.isin(snapshot.view_owner, allowed)
         similarity = np.where(usable, similarity, -np.inf)
-        starts = np.flatnonzero(np.diff(snapshot.view_owner, prepend=-1))  # rows are in blocks
-        best_per_row = np.maximum.reduceat(similarity, starts)
+        best_per_row = np.maximum.reduceat(similarity, snapshot.view_starts)
         return [int(r) for r in np.argsort(-best_per_row)[:count] if np.isfinite(best_per_row[r])]
 
     def _unanswered(self, snapshot, allowed, observed, scores, reasons=None) -> Alignment:

@@ -4,6 +4,7 @@ built once at registration or load, and the gallery's immutable snapshot of them
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -101,3 +102,8 @@ class Snapshot:
     view_radii: np.ndarray = field(default_factory=lambda: np.zeros(0))
     # each reference's look-alikes (``service.engine.look_alikes.relation``), where it has any
     look_alikes: dict[str, tuple[str, ...]] = field(default_factory=dict)
+
+    @cached_property
+    def view_starts(self) -> np.ndarray:
+        """Where each row's block of views begins in ``view_keys`` (the rows are in blocks)."""
+        return np.flatnonzero(np.diff(self.view_owner, prepend=-1))

@@ -88,7 +88,7 @@ def suspects(snapshot: Snapshot, name: str, count: int = SUSPECTS) -> list[str]:
     if not len(mine):
         return []
     nearest = (snapshot.view_keys @ mine.T).max(axis=1)
-    starts = np.flatnonzero(np.diff(owner, prepend=-1))  # rows are in blocks
+    starts = snapshot.view_starts
     counts = np.diff(np.append(starts, len(owner)))
     likeness = np.add.reduceat(nearest, starts) / counts
     ratio = snapshot.scales[owner[starts]] / snapshot.scales[row]
