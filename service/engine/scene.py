@@ -77,6 +77,7 @@ from service.engine.tuning import (
     TEMPLATE_PARTS,
     TEMPLATE_POOL,
     TEMPLATE_SIZES,
+    TEMPLATES_ASKED,
     THROUGH_DOUBT,
     TURNED_EXPLAINED,
     TURNED_FLOOR,
@@ -728,7 +729,8 @@ class Scan:
     def instance(self, region: np.ndarray, place: bool = True) -> Instance | None:
         """The chain's answer for the points ``region`` as an instance claiming the free
         points near its surface; else, among few plausible parts, the likeliest parts' views
-        placed over the region, and the chain asked about the points the best explains. None
+        placed over the region, and the chain asked about the points the best explains, then
+        the next best (``TEMPLATES_ASKED``; docs/decisions.md#a-supports-rim-given-back). None
         if neither explains enough."""
         points = self.frame.points[region]
         sigma = self.noise.at(points, self.frame.viewpoint)
@@ -752,16 +754,15 @@ class Scan:
                 self.query.rng,
                 self.camera,
             )
-            if not poses:
-                continue
-            close, _ = near_surface(
-                points, entry, poses[0].rotation, poses[0].translation, CLAIM_TOLERANCE * tolerance
-            )
-            if len(close) < MIN_EXPLAINED:
-                continue
-            found = self.claim(region, self.answer_for(points[close], sigma), sigma)
-            if found is not None:
-                return found
+            for pose in poses[:TEMPLATES_ASKED]:
+                close, _ = near_surface(
+                    points, entry, pose.rotation, pose.translation, CLAIM_TOLERANCE * tolerance
+                )
+                if len(close) < MIN_EXPLAINED:
+                    continue
+                found = self.claim(region, self.answer_for(points[close], sigma), sigma)
+                if found is not None:
+                    return found
         return None
 
     def may_hold_several(self, points: np.ndarray, answer: Alignment) -> bool:

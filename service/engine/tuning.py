@@ -152,6 +152,7 @@ TEMPLATE_POINTS = 24  # ... screened on this many of each view's expected points
 TEMPLATE_TOLERANCE = 0.1  # ... within this share of the part's scale
 TEMPLATE_REFINED = 16  # the best placed views refined (per seed kept, then overall)
 TEMPLATE_PARTS = 3  # parts whose views are placed over a segment where the chain found none
+TEMPLATES_ASKED = 2  # ... the chain asked about what each part's best few placed explain
 PINHOLE_RESIDUAL_PX = 0.75  # a frame whose pixels fit a pinhole this well has a depth image
 PINHOLE_POINTS = 4096  # ... fitted on about this many of its points, evenly through it
 PIXEL_PAIRS = 65_536  # a frame's pixel angle: the median over about this many neighbours
