@@ -36,6 +36,8 @@ from service.engine.tuning import (
     MAX_SUPPORTS,
     PART_EXTENTS,
     RAISED_SHARE,
+    RIM_NOISES,
+    RIM_STEPS,
     SENSOR_NOISE,
     SLAB_SHARE,
     SUPPORT_CELLS,
@@ -423,7 +425,46 @@ def apply_supports(frame: Frame, supports: list[Support], angle: float) -> np.nd
             keep &= height > -tolerance
         if support.band is not None:
             keep &= ~support.band.holds(frame.points)
+    if supports:
+        keep |= rim(frame, keep, supports, tolerance)
     return keep
+
+
+def rim(
+    frame: Frame, keep: np.ndarray, supports: list[Support], tolerance: np.ndarray
+) -> np.ndarray:
+    """A mask of the points set aside only by the band of the support the parts rest on (a
+    bin's floor, else the first) that are a part's lower rim: more than ``RIM_NOISES`` times
+    its noise over it (and half the band), reached from a point ``keep`` holds through such
+    points, ``RIM_STEPS`` pixels at most. The support's own noise, away from a part, stays set
+    aside, and so does the table's band round a bin, where only the bin's walls stand
+    (docs/decisions.md#a-supports-rim-given-back)."""
+    given = np.zeros(len(frame), dtype=bool)
+    if frame.shape is None or not keep.any():
+        return given
+    resting = resting_support(supports)
+    height = frame.points @ resting.plane[:3] - resting.plane[3]
+    noise = resting.noise * frame.ranges() / max(resting.at_range, 1e-12)
+    lower = ~keep & (height > np.maximum(RIM_NOISES * noise, tolerance / 2)) & (height < tolerance)
+    for support in supports:
+        if support is not resting:
+            lower &= np.abs(frame.points @ support.plane[:3] - support.plane[3]) >= tolerance
+        if support.band is not None:
+            lower &= ~support.band.holds(frame.points)
+    if not lower.any():
+        return given
+    rows, columns = frame.cells()
+    kept, may = (np.zeros(frame.grid_shape, dtype=bool) for _ in range(2))
+    kept[rows[keep], columns[keep]] = True
+    may[rows[lower], columns[lower]] = True
+    grown = ndimage.binary_dilation(kept, np.ones((3, 3)), RIM_STEPS, mask=may | kept)
+    given[lower] = grown[rows[lower], columns[lower]]
+    return given
+
+
+def resting_support(supports: list[Support]) -> Support:
+    """The support the parts rest on: a bin's floor, else the first (a table)."""
+    return next((s for s in supports if s.band is not None), supports[0])
 
 
 @dataclass(frozen=True)

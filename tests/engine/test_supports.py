@@ -10,8 +10,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from service.engine import supports as supports_module
-from service.engine.supports import set_aside_supports
-from tests.frames import box, frame_of, resting, shoot, spin
+from service.engine.supports import set_aside_supports, tolerances
+from tests.frames import box, frame_of, resting, shoot, spin, table
 
 # the parts a frame may hold: small ones, and one (a tray) that reaches past the table
 SCALES = np.array([0.04, 0.06, 0.9])
@@ -219,3 +219,40 @@ def test_two_parts_faces_in_one_tilted_plane_are_not_a_support(parts):
     for k in range(2):
         mine = np.isin(frame.index, np.flatnonzero(shot.shows.ravel() == k))
         assert keep[mine].mean() > 0.9, f"plate {k} was set aside as a support"
+
+
+def test_a_thin_parts_lower_rim_is_kept_and_the_tables_noise_set_aside():
+    # a plate 8 mm thick lying flat: its sides' lower millimetres lie in the table's band
+    # (4.6 mm here); those clearly over the table's noise touch the plate and are given back,
+    # while the table's own noise stays set aside (docs/decisions.md#a-supports-rim-given-back)
+    plate = box((0.07, 0.05, 0.008), (0.0, 0.0, 0.0))
+    shot = shoot([(plate, *resting(plate, spin(25), 0.0, 0.0))], table(), elevation_deg=50.0)
+    frame, keep, supports = supports_of(shot)
+    first = supports[0]
+    height = frame.points @ first.plane[:3] - first.plane[3]
+    band = tolerances(frame, frame.pixel_angle())
+    mine = np.isin(frame.index, np.flatnonzero(shot.shows.ravel() == 0))
+    rim = mine & (height > 3.5 * first.noise) & (height < band)
+    assert rim.sum() >= 10, "the plate has no rim in the table's band"
+    assert keep[rim].all()
+    bare = np.isin(frame.index, np.flatnonzero(shot.shows.ravel() == -1))
+    assert (keep & bare).sum() < 1e-4 * bare.sum()
+
+
+def test_in_a_bin_the_parts_rims_on_its_floor_are_kept_and_the_tables_band_set_aside(parts):
+    # the parts rest on the bin's floor, not on the table: their lower rims in the floor's
+    # band are given back; the table's band round the bin holds only the bin's outer walls,
+    # and stays set aside (docs/decisions.md#a-supports-rim-given-back)
+    bin_meshes, placed = raised_bin(parts)
+    shot = shoot(placed, [*table(), *bin_meshes], elevation_deg=55.0, distance=0.9)
+    frame, keep, supports = supports_of(shot, np.array([0.03, 0.06, 0.15]))
+    floor = next(s for s in supports if s.band is not None)
+    band = tolerances(frame, frame.pixel_angle())
+    bare = np.isin(frame.index, np.flatnonzero(shot.shows.ravel() == -1))
+    over_floor = frame.points @ floor.plane[:3] - floor.plane[3]
+    rim = ~bare & (over_floor > 3.5 * floor.noise) & (over_floor < band)
+    assert rim.sum() >= 10, "the parts have no rim in the floor's band"
+    assert keep[rim].all()
+    table_plane = supports[0].plane
+    in_table_band = np.abs(frame.points @ table_plane[:3] - table_plane[3]) < band
+    assert not (keep & bare & in_table_band).any()
