@@ -53,7 +53,7 @@ from service.engine.reference import Reference
 from service.engine.scene import Found, Scan, settle_claims, several
 from service.engine.search import Plan, Search, excellent, sure_first
 from service.engine.segments import segments
-from service.engine.supports import Noise, apply_supports, set_aside_supports
+from service.engine.supports import Noise, apply_supports, in_rims, set_aside_supports
 from service.engine.surroundings import Reading, as_is, set_aside_bin, set_aside_surroundings
 from service.engine.symmetry import Symmetry, declared_symmetry, find_symmetry
 from service.engine.tuning import (
@@ -912,7 +912,7 @@ class Engine:
         keep, supports = set_aside_supports(thin, angle, scales, query.rng)
         clock.lap("supports")
         rest = thin.take(keep)
-        labels = segments(rest, angle)  # segments
+        labels = segments(rest, angle, rims=in_rims(rest, supports, angle))  # segments
         clock.lap("segments")
         camera, noise = DepthImage.of(thin), Noise(supports[0] if supports else None)
         sizes = (float(scales.min()), float(scales.max()))

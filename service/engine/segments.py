@@ -8,6 +8,7 @@ in depth where it hides itself; ``scene`` handles both.
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
@@ -23,10 +24,23 @@ GRID_OFFSETS, APART = np.array(OFFSETS, dtype=np.intp), np.hypot(*np.array(OFFSE
 LINKS = (LINK_FOOTPRINTS, LINK_NOISE)  # how near neighbours lie to be joined: footprints, range
 
 
-def segments(frame: Frame, angle: float, links: tuple[float, float] = LINKS) -> np.ndarray:
+def segments(
+    frame: Frame,
+    angle: float,
+    links: tuple[float, float] = LINKS,
+    rims: np.ndarray | None = None,
+) -> np.ndarray:
     """(N,) a segment label per point of ``frame``; ``angle``: the angle between neighbouring
     pixels' rays at full resolution (``Frame.pixel_angle``); ``links``: how near neighbours
-    must lie to be joined, in footprints and as a share of the range."""
+    must lie to be joined, in footprints and as a share of the range. ``rims``: a mask of
+    points (parts' lower rims, given back from a support's band) that join the segment of
+    the pixel nearest them, never two segments: two parts touching only at the support
+    stay apart (docs/decisions.md#a-supports-rim-given-back)."""
+    if rims is not None and rims.any() and frame.shape is not None and not rims.all():
+        labels = np.empty(len(frame), dtype=np.intp)
+        labels[~rims] = segments(frame.take(~rims), angle, links)
+        labels[rims] = labels[~rims][nearest_pixel(frame, ~rims, rims)]
+        return labels
     if len(frame) == 0:
         return np.zeros(0, dtype=np.intp)
     ranges = frame.ranges()
@@ -35,6 +49,16 @@ def segments(frame: Frame, angle: float, links: tuple[float, float] = LINKS) -> 
         link = (footprints * angle + noise) * float(np.median(ranges))
         return groups(frame.points, link)
     return grid_segments(frame, angle, ranges, links)
+
+
+def nearest_pixel(frame: Frame, among: np.ndarray, of: np.ndarray) -> np.ndarray:
+    """For each point ``of`` names (a mask of the organized ``frame``), which of the points
+    ``among`` names (an index into them) lies on the nearest pixel of the frame's grid."""
+    rows, columns = frame.cells()
+    grid = np.full(frame.grid_shape, -1, dtype=np.intp)
+    grid[rows[among], columns[among]] = np.arange(int(among.sum()))
+    _, (near_rows, near_columns) = ndimage.distance_transform_edt(grid < 0, return_indices=True)
+    return grid[near_rows[rows[of], columns[of]], near_columns[rows[of], columns[of]]]
 
 
 def grid_segments(

@@ -467,6 +467,15 @@ def resting_support(supports: list[Support]) -> Support:
     return next((s for s in supports if s.band is not None), supports[0])
 
 
+def in_rims(frame: Frame, supports: list[Support], angle: float) -> np.ndarray:
+    """(N,) which of the points left once the ``supports`` are set aside lie in the band of
+    the one the parts rest on: the lower rims ``rim`` gave back."""
+    if not supports:
+        return np.zeros(len(frame), dtype=bool)
+    plane = resting_support(supports).plane
+    return np.abs(frame.points @ plane[:3] - plane[3]) < tolerances(frame, angle)
+
+
 @dataclass(frozen=True)
 class Noise:
     """The sensor's depth noise where points lie: measured on the support the parts rest on,
