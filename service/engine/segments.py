@@ -16,7 +16,7 @@ from service.engine import kernels
 from service.engine.frame import Frame
 from service.engine.normalize import lengths
 from service.engine.surroundings import groups
-from service.engine.tuning import LINK_FOOTPRINTS, LINK_NOISE
+from service.engine.tuning import LINK_FOOTPRINTS, LINK_NOISE, RIM_STEPS
 
 # neighbouring pixels linked: right, down, the diagonals, and two along (across a missing one)
 OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1), (0, 2), (2, 0))
@@ -51,14 +51,34 @@ def segments(
     return grid_segments(frame, angle, ranges, links)
 
 
-def nearest_pixel(frame: Frame, among: np.ndarray, of: np.ndarray) -> np.ndarray:
+def nearest_pixel(
+    frame: Frame, among: np.ndarray, of: np.ndarray, reach: int = RIM_STEPS
+) -> np.ndarray:
     """For each point ``of`` names (a mask of the organized ``frame``), which of the points
-    ``among`` names (an index into them) lies on the nearest pixel of the frame's grid."""
+    ``among`` names (an index into them) lies on the nearest pixel of the frame's grid: looked
+    for ``reach`` pixels round it, offsets nearest first (a rim lies that near its part), then
+    over the whole grid for any left."""
     rows, columns = frame.cells()
     grid = np.full(frame.grid_shape, -1, dtype=np.intp)
     grid[rows[among], columns[among]] = np.arange(int(among.sum()))
-    _, (near_rows, near_columns) = ndimage.distance_transform_edt(grid < 0, return_indices=True)
-    return grid[near_rows[rows[of], columns[of]], near_columns[rows[of], columns[of]]]
+    rows, columns = rows[of], columns[of]
+    found = np.full(len(rows), -1, dtype=np.intp)
+    steps = np.arange(-reach, reach + 1)
+    offsets = np.stack(np.meshgrid(steps, steps, indexing="ij"), axis=-1).reshape(-1, 2)
+    for down, right in offsets[np.argsort(np.hypot(*offsets.T), kind="stable")]:
+        left = np.flatnonzero(found < 0)
+        if not len(left):
+            return found
+        r, c = rows[left] + down, columns[left] + right
+        inside = (r >= 0) & (r < grid.shape[0]) & (c >= 0) & (c < grid.shape[1])
+        found[left[inside]] = grid[r[inside], c[inside]]
+    left = np.flatnonzero(found < 0)
+    if len(left):
+        _, (near_rows, near_columns) = ndimage.distance_transform_edt(grid < 0, return_indices=True)
+        found[left] = grid[
+            near_rows[rows[left], columns[left]], near_columns[rows[left], columns[left]]
+        ]
+    return found
 
 
 def grid_segments(

@@ -444,21 +444,31 @@ def rim(
         return given
     resting = resting_support(supports)
     height = frame.points @ resting.plane[:3] - resting.plane[3]
-    noise = resting.noise * frame.ranges() / max(resting.at_range, 1e-12)
-    lower = ~keep & (height > np.maximum(RIM_NOISES * noise, tolerance / 2)) & (height < tolerance)
+    lower = np.flatnonzero(~keep & (height > tolerance / 2) & (height < tolerance))
+    noise = resting.noise * frame.ranges()[lower] / max(resting.at_range, 1e-12)
+    lower = lower[height[lower] > RIM_NOISES * noise]
+    points = frame.points[lower]
     for support in supports:
         if support is not resting:
-            lower &= np.abs(frame.points @ support.plane[:3] - support.plane[3]) >= tolerance
+            off = np.abs(points @ support.plane[:3] - support.plane[3]) >= tolerance[lower]
+            lower, points = lower[off], points[off]
         if support.band is not None:
-            lower &= ~support.band.holds(frame.points)
-    if not lower.any():
+            off = ~support.band.holds(points)
+            lower, points = lower[off], points[off]
+    if not len(lower):
         return given
-    rows, columns = frame.cells()
-    kept, may = (np.zeros(frame.grid_shape, dtype=bool) for _ in range(2))
-    kept[rows[keep], columns[keep]] = True
-    may[rows[lower], columns[lower]] = True
+    # grown from the kept points through the lower ones, on the grid round the lower ones only
+    rows, columns = frame.cells(lower)
+    low = np.array([rows.min(), columns.min()]) - RIM_STEPS
+    high = np.array([rows.max(), columns.max()]) + RIM_STEPS + 1
+    kept_rows, kept_columns = frame.cells(np.flatnonzero(keep))
+    near = (kept_rows >= low[0]) & (kept_rows < high[0])
+    near &= (kept_columns >= low[1]) & (kept_columns < high[1])
+    kept, may = (np.zeros(high - low, dtype=bool) for _ in range(2))
+    kept[kept_rows[near] - low[0], kept_columns[near] - low[1]] = True
+    may[rows - low[0], columns - low[1]] = True
     grown = ndimage.binary_dilation(kept, np.ones((3, 3)), RIM_STEPS, mask=may | kept)
-    given[lower] = grown[rows[lower], columns[lower]]
+    given[lower] = grown[rows - low[0], columns - low[1]]
     return given
 
 

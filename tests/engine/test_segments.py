@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.engine.frame import Frame
-from service.engine.segments import segments
+from service.engine.segments import nearest_pixel, segments
 
 
 def test_rim_pixels_join_the_nearest_segment_and_never_bridge_two():
@@ -31,3 +31,20 @@ def test_rim_pixels_join_the_nearest_segment_and_never_bridge_two():
     across = columns.ravel()[index][rims]
     assert np.all(labels[rims][across < 20] == left)
     assert np.all(labels[rims][across >= 20] == right)
+
+
+def test_a_point_farther_than_a_rim_reaches_still_joins_its_nearest_pixel():
+    # the window round each point is searched first; past it, the whole grid is
+    height, width = 10, 30
+    valid = np.zeros((height, width), dtype=bool)
+    valid[:, :5] = True  # a block at the left
+    valid[:, 25:] = True  # one at the right
+    valid[5, 12] = valid[5, 18] = True  # two lone points, 7 pixels from either block
+    rows, columns = np.nonzero(valid)
+    index = rows * width + columns
+    points = np.stack([columns * 0.002, rows * 0.002, np.ones(len(rows))], axis=1)
+    frame = Frame.of(points.astype(float), index, (height, width))
+    of = (columns == 12) | (columns == 18)
+    found = nearest_pixel(frame, ~of, of)
+    among_columns = columns[~of]
+    assert among_columns[found[0]] == 4 and among_columns[found[1]] == 25
