@@ -62,8 +62,9 @@ class Support:
     at_range: float  # ... at this median range from the camera
     band: Band | None = None  # a bin's floor: where its walls and rims stand (``bins``)
 
-    def noise_at(self, distance: float) -> float:
-        """The sensor's noise at ``distance`` from the camera, growing with the range."""
+    def noise_at(self, distance: float | np.ndarray) -> float | np.ndarray:
+        """The sensor's noise at ``distance`` (or each of them) from the camera, growing with
+        the range."""
         return self.noise * distance / max(self.at_range, 1e-12)
 
 
@@ -445,8 +446,7 @@ def rim(
     resting = resting_support(supports)
     height = frame.points @ resting.plane[:3] - resting.plane[3]
     lower = np.flatnonzero(~keep & (height > tolerance / 2) & (height < tolerance))
-    noise = resting.noise * frame.ranges()[lower] / max(resting.at_range, 1e-12)
-    lower = lower[height[lower] > RIM_NOISES * noise]
+    lower = lower[height[lower] > RIM_NOISES * resting.noise_at(frame.ranges()[lower])]
     points = frame.points[lower]
     for support in supports:
         if support is not resting:
