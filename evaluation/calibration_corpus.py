@@ -212,9 +212,9 @@ def group_rows(
     references, meshes = [], {}  # half registered as meshes, half as clouds
     for number, (part, mesh) in enumerate(parts):
         points, faces = sample_surface_faces(mesh, 2048, 0)
-        if number % 2 == 0:
+        as_mesh = number % 2 == 0
+        if as_mesh:
             meshes[part.name] = mesh
-        as_mesh = part.name in meshes
         references.append(
             engine.make_reference(
                 part.name,

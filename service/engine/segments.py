@@ -58,9 +58,12 @@ def nearest_pixel(
     ``among`` names (an index into them) lies on the nearest pixel of the frame's grid: looked
     for ``reach`` pixels round it, offsets nearest first (a rim lies that near its part), then
     over the whole grid for any left."""
-    rows, columns = frame.cells()
-    grid = np.full(frame.grid_shape, -1, dtype=np.intp)
-    grid[rows[among], columns[among]] = np.arange(int(among.sum()))
+    rows, columns, _, where = pixel_lookup(frame)
+    height, width = frame.grid_shape
+    grid = np.full(height * width, -1, dtype=np.intp)  # each pixel's point among ``among``
+    held = where >= 0
+    grid[held] = np.where(among, np.cumsum(among) - 1, -1)[where[held]]
+    grid = grid.reshape(height, width)
     rows, columns = rows[of], columns[of]
     found = np.full(len(rows), -1, dtype=np.intp)
     steps = np.arange(-reach, reach + 1)
@@ -70,7 +73,7 @@ def nearest_pixel(
         if not len(left):
             return found
         r, c = rows[left] + down, columns[left] + right
-        inside = (r >= 0) & (r < grid.shape[0]) & (c >= 0) & (c < grid.shape[1])
+        inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
         found[left[inside]] = grid[r[inside], c[inside]]
     left = np.flatnonzero(found < 0)
     if len(left):

@@ -419,42 +419,46 @@ def apply_supports(frame: Frame, supports: list[Support], angle: float) -> np.nd
     it are set aside (a mask), as ``set_aside_supports`` sets them aside."""
     tolerance = tolerances(frame, angle)
     keep = np.ones(len(frame), dtype=bool)
+    heights = []  # each point's height over each support
     for k, support in enumerate(supports):
         height = frame.points @ support.plane[:3] - support.plane[3]
+        heights.append(height)
         keep &= np.abs(height) >= tolerance
         if k == 0:
             keep &= height > -tolerance
         if support.band is not None:
             keep &= ~support.band.holds(frame.points)
     if supports:
-        keep |= rim(frame, keep, supports, tolerance)
+        keep |= rim(frame, keep, supports, heights, tolerance)
     return keep
 
 
 def rim(
-    frame: Frame, keep: np.ndarray, supports: list[Support], tolerance: np.ndarray
+    frame: Frame,
+    keep: np.ndarray,
+    supports: list[Support],
+    heights: list[np.ndarray],
+    tolerance: np.ndarray,
 ) -> np.ndarray:
     """A mask of the points set aside only by the band of the support the parts rest on (a
     bin's floor, else the first) that are a part's lower rim: more than ``RIM_NOISES`` times
     its noise over it (and half the band), reached from a point ``keep`` holds through such
     points, ``RIM_STEPS`` pixels at most. The support's own noise, away from a part, stays set
     aside, and so does the table's band round a bin, where only the bin's walls stand
-    (docs/decisions.md#a-supports-rim-given-back)."""
+    (docs/decisions.md#a-supports-rim-given-back). ``heights``: each point's over each of the
+    ``supports``, as ``apply_supports`` measured them."""
     given = np.zeros(len(frame), dtype=bool)
     if frame.shape is None or not keep.any():
         return given
     resting = resting_support(supports)
-    height = frame.points @ resting.plane[:3] - resting.plane[3]
+    height = heights[next(k for k, s in enumerate(supports) if s is resting)]
     lower = np.flatnonzero(~keep & (height > tolerance / 2) & (height < tolerance))
     lower = lower[height[lower] > RIM_NOISES * resting.noise_at(frame.ranges()[lower])]
-    points = frame.points[lower]
-    for support in supports:
+    for support, over in zip(supports, heights, strict=True):
         if support is not resting:
-            off = np.abs(points @ support.plane[:3] - support.plane[3]) >= tolerance[lower]
-            lower, points = lower[off], points[off]
+            lower = lower[np.abs(over[lower]) >= tolerance[lower]]
         if support.band is not None:
-            off = ~support.band.holds(points)
-            lower, points = lower[off], points[off]
+            lower = lower[~support.band.holds(frame.points[lower])]
     if not len(lower):
         return given
     # grown from the kept points through the lower ones, on the grid round the lower ones only
