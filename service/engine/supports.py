@@ -30,6 +30,7 @@ from service.engine.tuning import (
     BOUND_CELLS,
     BOUND_STRAYS,
     CARRIED_POINTS,
+    FLOOR_DEG,
     LATER_SHARE,
     LEVEL_CONNECTED,
     MAX_PLANES,
@@ -269,18 +270,21 @@ def detached_behind(
     return behind[off] & (~joined[labels[off]] | edge)
 
 
-def level_and_height(on_plane: np.ndarray, plane: np.ndarray, floor: Support) -> tuple[bool, float]:
-    """Whether a plane lies level with a support found before it (within ``WALL_DEG``), and
+def level_and_height(
+    on_plane: np.ndarray, plane: np.ndarray, floor: Support, degrees: float = WALL_DEG
+) -> tuple[bool, float]:
+    """Whether a plane lies level with a support found before it (within ``degrees``), and
     how high above it its points lie (median)."""
-    level = abs(float(plane[:3] @ floor.plane[:3])) > np.cos(np.radians(WALL_DEG))
+    level = abs(float(plane[:3] @ floor.plane[:3])) > np.cos(np.radians(degrees))
     return level, float(np.median(on_plane @ floor.plane[:3] - floor.plane[3]))
 
 
 def is_level(on_plane: np.ndarray, plane: np.ndarray, floor: Support, across: float) -> bool:
     """Whether a plane lies level with a support found before it, above it by less than
-    ``SLAB_SHARE`` of its reach (``across``): a bin's floor on a table, not the face of a part
-    (which would be a thin plate)."""
-    level, height = level_and_height(on_plane, plane, floor)
+    ``SLAB_SHARE`` of its reach (``across``) and within ``FLOOR_DEG`` of it: a bin's floor on a
+    table, not the face of a part (which would be a thin plate), nor parts' tops in one plane
+    (docs/decisions.md#a-bins-floor-level-with-the-table)."""
+    level, height = level_and_height(on_plane, plane, floor, FLOOR_DEG)
     return level and 0 < height < SLAB_SHARE * across
 
 

@@ -107,6 +107,9 @@ LATER_SHARE = 0.1  # ... a later one (a wall) this share of the points left ...
 CARRIED_POINTS = 50  # ... carrying more points than this, unless it is a wall
 BEHIND_SHARE = 0.2  # ... and has less than this share of what lies over it behind it
 SLAB_SHARE = 0.1  # a support's slab (a table's edge, a bin's floor) is this thin for its reach
+# a bin's floor lies this level with the table it stands on; parts' tops in one plane tilt more
+# (docs/decisions.md#a-bins-floor-level-with-the-table)
+FLOOR_DEG = 2.0
 SUPPORT_REACH = 1.5  # ... or reaches this many times the largest part's scale (no face does)
 RAISED_SHARE = 0.2  # a plane over the first, parallel, this share of its points: a table
 PART_EXTENTS = 2.0  # the parts on a support are at most this many times what is left's extent
