@@ -42,7 +42,7 @@ from service.engine.look_alikes import doubt, undoubted
 from service.engine.normalize import radius, squared_distances, subsample
 from service.engine.projection import DepthImage
 from service.engine.query import Query, Stopwatch
-from service.engine.segments import adjacent, cell_groups, segments
+from service.engine.segments import adjacent, cell_groups, creases, segments
 from service.engine.supports import Noise, Support
 from service.engine.templates import likeliest, place_views
 from service.engine.tuning import (
@@ -496,11 +496,13 @@ class Scan:
     # the segments searched there (``Shared``)
     submit: Callable[..., Future] | None = None
     free: np.ndarray = field(init=False)  # which points no instance has claimed yet
+    cut: np.ndarray = field(init=False)  # which points lie in a region a crease split
     complete: bool = field(init=False, default=True)  # every region was searched in time
     asked: dict[tuple, tuple[np.ndarray, Future]] = field(init=False)  # sent ahead
 
     def __post_init__(self):
         self.free = np.ones(len(self.frame), dtype=bool)
+        self.cut = np.zeros(len(self.frame), dtype=bool)
         self.asked = {}
 
     @property
@@ -511,7 +513,7 @@ class Scan:
     def narrowed(self, query: Query) -> Scan:
         """This search asking ``query`` (fewer parts) instead: what it took stays out."""
         again = replace(self, query=query)
-        again.free = self.free
+        again.free, again.cut = self.free, self.cut
         return again
 
     def in_time(self) -> bool:
@@ -584,7 +586,9 @@ class Scan:
                 if instance is None:  # touching parts, a depth jump between them
                     failed += [segment] if tries == 1 and not retry else []
                     missed.append(region)
-                    pending = ([] if retry else self.finer(region)) + pending
+                    if not retry:  # finer pieces first; a crease's after the rest
+                        finer = self.finer(region)
+                        pending = finer + pending if finer else pending + self.creased(region)
                     continue
                 self.take(instance, found)
                 pieces = self.pieces(region[self.free[region]])
@@ -707,12 +711,27 @@ class Scan:
         (docs/decisions.md#a-segment-split-finer). Empty where no level parts it."""
         frame = self.frame.take(region)
         for links in FINER_LINKS:
-            labels = segments(frame, self.frame.pixel_angle(), links)
-            sizes = np.bincount(labels)
-            order = [g for g in np.argsort(-sizes, kind="stable") if sizes[g] >= MIN_SEGMENT]
-            if len(order) >= 2:
-                return [region[labels == g] for g in order]
+            parts = self.split(region, segments(frame, self.frame.pixel_angle(), links))
+            if parts:
+                return parts
         return []
+
+    def creased(self, region: np.ndarray) -> list[np.ndarray]:
+        """A region the search found nothing in and no finer jump in depth parts, split at the
+        creases where parts touch (``segments.creases``), largest first; empty where none
+        parts it (docs/decisions.md#touching-parts-split-at-a-crease)."""
+        pieces = self.split(region, creases(self.frame.take(region)))
+        if pieces:
+            self.cut[region] = True
+        return pieces
+
+    @staticmethod
+    def split(region: np.ndarray, labels: np.ndarray) -> list[np.ndarray]:
+        """The pieces of ``region`` that ``labels`` (one per point) make, largest first,
+        those too small to search left out; empty unless two or more are left."""
+        sizes = np.bincount(labels)
+        order = [g for g in np.argsort(-sizes, kind="stable") if sizes[g] >= MIN_SEGMENT]
+        return [region[labels == g] for g in order] if len(order) >= 2 else []
 
     def take(self, instance: Instance, found: list[Instance]) -> None:
         """``instance`` added to ``found``, its points out of the search."""
@@ -1031,8 +1050,16 @@ class Scan:
         ``ALIKE_THROUGH`` more, the frame tells them apart (a part with a face the other
         lacks: the chain, on its sample, weighs the points that face adds no more than the
         coverage it costs the other). That part's instance, judged on the chain's confidence
-        undivided among them; else the instance as it was
-        (docs/decisions.md#look-alikes-in-a-frame)."""
+        undivided among them; else the instance as it was. In a region a crease split, an
+        instance of a part with look-alikes is doubted, whatever the chain said
+        (docs/decisions.md#touching-parts-split-at-a-crease)."""
+        if self.cut[claim.region].any():  # a crease may have cut off the face they differ by
+            answer = instance.answer
+            alike = self.query.snapshot.look_alikes.get(answer.label, ())
+            if alike and not answer.look_alikes:
+                answer.look_alikes = list(alike)
+                doubt(answer, share=False)
+            return instance
         if not instance.answer.look_alikes or self.camera is None:
             return instance
         alone = undoubted(chain)

@@ -16,7 +16,14 @@ from service.engine import kernels
 from service.engine.frame import Frame
 from service.engine.normalize import lengths
 from service.engine.surroundings import groups
-from service.engine.tuning import LINK_FOOTPRINTS, LINK_NOISE, RIM_STEPS
+from service.engine.tuning import (
+    CREASE_DEG,
+    CREASE_PIXELS,
+    LINK_FOOTPRINTS,
+    LINK_NOISE,
+    NORMAL_PIXELS,
+    RIM_STEPS,
+)
 
 # neighbouring pixels linked: right, down, the diagonals, and two along (across a missing one)
 OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1), (0, 2), (2, 0))
@@ -215,3 +222,80 @@ def adjacent(frame: Frame, labels: np.ndarray, chosen: np.ndarray, reach: int) -
     different = a != b
     low, high = np.minimum(a, b)[different], np.maximum(a, b)[different]
     return set(zip(low.tolist(), high.tolist(), strict=True))
+
+
+def creases(frame: Frame, reach: int = CREASE_PIXELS, degrees: float = CREASE_DEG) -> np.ndarray:
+    """(N,) a label per point of an organized ``frame`` (a region of one), split where its
+    surface folds inward: two parts touching meet in a valley, seen from the camera. A pixel
+    lies on a crease where its neighbours ``reach`` pixels to either side (along a row, a
+    column or a diagonal) face each other, their normals more than ``degrees`` apart; the
+    rest falls into connected pieces, and each crease pixel joins the piece of the nearest
+    (docs/decisions.md#touching-parts-split-at-a-crease). One label everywhere without a grid."""
+    if frame.shape is None or len(frame) < 3:
+        return np.zeros(len(frame), dtype=np.intp)
+    rows, columns = frame.cells()
+    rows, columns = rows - rows.min() + reach, columns - columns.min() + reach
+    shape = (int(rows.max()) + reach + 1, int(columns.max()) + reach + 1)
+    held = np.zeros(shape, dtype=bool)
+    held[rows, columns] = True
+    points = np.zeros((*shape, 3))
+    points[rows, columns] = frame.points
+    normals = np.zeros((*shape, 3))
+    normals[rows, columns] = grid_normals(points, held, rows, columns, frame.viewpoint)
+    crease = np.zeros(shape, dtype=bool)
+    inner = (slice(reach, shape[0] - reach), slice(reach, shape[1] - reach))
+    for down, right in ((0, reach), (reach, 0), (reach, reach), (reach, -reach)):
+        before = (slice(reach - down, shape[0] - reach - down),
+                  slice(reach - right, shape[1] - reach - right))  # fmt: skip
+        after = (slice(reach + down, shape[0] - reach + down),
+                 slice(reach + right, shape[1] - reach + right))  # fmt: skip
+        both = held[before] & held[after] & held[inner]
+        step = points[after] - points[before]
+        step /= np.maximum(np.linalg.norm(step, axis=-1, keepdims=True), 1e-12)
+        apart = np.einsum("ijk,ijk->ij", normals[before], normals[after])
+        facing = np.einsum("ijk,ijk->ij", normals[before] - normals[after], step) > 0
+        crease[inner] |= both & facing & (apart < np.cos(np.radians(degrees)))
+    pieces, count = ndimage.label(held & ~crease, np.ones((3, 3)))
+    if count <= 1:
+        return np.zeros(len(frame), dtype=np.intp)
+    _, (near_rows, near_columns) = ndimage.distance_transform_edt(pieces == 0, return_indices=True)
+    return pieces[near_rows[rows, columns], near_columns[rows, columns]] - 1
+
+
+def grid_normals(
+    points: np.ndarray,
+    held: np.ndarray,
+    rows: np.ndarray,
+    columns: np.ndarray,
+    viewpoint: np.ndarray,
+    width: int = NORMAL_PIXELS,
+) -> np.ndarray:
+    """(N,) unit normals at the held pixels ``rows``, ``columns`` of a grid of ``points``:
+    the plane of the held pixels in a ``width`` square round each (box sums, linear in the
+    pixels), turned towards ``viewpoint``."""
+    weight = held.astype(np.float64)
+    count = np.maximum(ndimage.uniform_filter(weight, width, mode="constant"), 1e-12)
+    mean = (
+        np.stack(
+            [
+                ndimage.uniform_filter(points[..., k] * weight, width, mode="constant")
+                for k in range(3)
+            ],
+            axis=-1,
+        )
+        / count[..., None]
+    )
+    covariance = np.empty((len(rows), 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            product = ndimage.uniform_filter(
+                points[..., a] * points[..., b] * weight, width, mode="constant"
+            )
+            covariance[:, a, b] = covariance[:, b, a] = (
+                product[rows, columns] / count[rows, columns]
+                - mean[rows, columns, a] * mean[rows, columns, b]
+            )
+    _, vectors = np.linalg.eigh(covariance)
+    normals = vectors[:, :, 0]
+    towards = viewpoint - points[rows, columns]
+    return normals * np.where(np.einsum("ij,ij->i", normals, towards) < 0, -1.0, 1.0)[:, None]

@@ -135,6 +135,12 @@ BAND_TRIM = 0.002  # the outline: the floor's points but this share on each side
 LINK_FOOTPRINTS = 3.0  # neighbouring pixels this many footprints apart are one segment ...
 LINK_NOISE = 0.004  # ... plus this share of their range
 FINER_LINKS = ((2.0, 0.002), (1.2, 0.0005))  # a failed region split again: footprints, share
+# ... then at a crease: a valley whose sides, this many pixels to either side, face each other
+# with normals (fitted on NORMAL_PIXELS squares) this many degrees apart; 30 and 45 split more
+# and matched more wrong (docs/decisions.md#touching-parts-split-at-a-crease)
+CREASE_PIXELS = 2
+CREASE_DEG = 60.0
+NORMAL_PIXELS = 5
 MIN_SEGMENT = 60  # a segment (or what is left of it) of fewer points is not searched
 MIN_EXPLAINED = 40  # an instance explains at least this many of its segment's points
 MATCH_POINTS = 150  # ... and a "match" this many (fewer were right 8 times in 244)

@@ -938,3 +938,14 @@ def test_look_alikes_the_frame_cannot_tell_apart_stay_doubted(engine):
     assert instance is not None and instance.answer.label == "bar"
     assert instance.answer.look_alikes == ["stepped"] and instance.answer.ambiguous
     assert instance.answer.verdict != "match"
+
+
+def test_look_alikes_are_not_told_apart_in_a_region_a_crease_split(engine):
+    # a crease may cut off the very face two look-alikes differ by: where the search split
+    # the region at one, the frame does not tell them apart, and the doubt stands
+    # (docs/decisions.md#touching-parts-split-at-a-crease)
+    scan, region, sigma, said = look_alikes_shot(engine, "stepped")
+    scan.cut[region] = True  # as ``Scan.creased`` marks the region it split
+    instance = scan.claim(region, said("bar"), sigma, again=False)
+    assert instance is not None and instance.answer.look_alikes == ["stepped"]
+    assert instance.answer.verdict != "match"
