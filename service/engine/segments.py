@@ -84,11 +84,17 @@ def nearest_pixel(
         found[left[inside]] = grid[r[inside], c[inside]]
     left = np.flatnonzero(found < 0)
     if len(left):
-        _, (near_rows, near_columns) = ndimage.distance_transform_edt(grid < 0, return_indices=True)
-        found[left] = grid[
-            near_rows[rows[left], columns[left]], near_columns[rows[left], columns[left]]
-        ]
+        found[left] = nearest_held(grid, grid >= 0, rows[left], columns[left])
     return found
+
+
+def nearest_held(
+    grid: np.ndarray, held: np.ndarray, rows: np.ndarray, columns: np.ndarray
+) -> np.ndarray:
+    """The value of ``grid`` (2-D) at the ``held`` cell nearest each of the cells ``rows``,
+    ``columns`` (a distance transform of the grid, linear in its cells)."""
+    _, (near_rows, near_columns) = ndimage.distance_transform_edt(~held, return_indices=True)
+    return grid[near_rows[rows, columns], near_columns[rows, columns]]
 
 
 def grid_segments(
@@ -258,8 +264,7 @@ def creases(frame: Frame, reach: int = CREASE_PIXELS, degrees: float = CREASE_DE
     pieces, count = ndimage.label(held & ~crease, np.ones((3, 3)))
     if count <= 1:
         return np.zeros(len(frame), dtype=np.intp)
-    _, (near_rows, near_columns) = ndimage.distance_transform_edt(pieces == 0, return_indices=True)
-    return pieces[near_rows[rows, columns], near_columns[rows, columns]] - 1
+    return nearest_held(pieces, pieces > 0, rows, columns) - 1
 
 
 def grid_normals(
