@@ -124,6 +124,7 @@ def find_supports(
     largest = largest_fitting(scales, extent(frame.points))
     links: tuple[np.ndarray, np.ndarray] | None = None  # the frame's pixel links, if needed
     floors: list[np.ndarray] = []  # the points of the bins' floors found
+    floor_of: list[bool] = []  # whether each support is a bin's floor
     keep = np.ones(len(frame), dtype=bool)
     faces = np.zeros(len(frame), dtype=bool)  # on planes found to be parts' faces
     supports: list[Support] = []
@@ -148,8 +149,13 @@ def find_supports(
         across = reach(on_plane, plane)
         # a bin's floor: level with the table, just above it; a later plane that is neither
         # level, raised nor a wall may be parts' faces in one plane, however far it reaches
-        # (docs/decisions.md#parts-faces-in-one-tilted-plane)
-        level = any(is_level(on_plane, plane, below, across) for below in supports)
+        # (docs/decisions.md#parts-faces-in-one-tilted-plane); one level with a bin's floor
+        # is flat parts' tops on it (docs/decisions.md#flat-parts-tops-over-a-bins-floor)
+        level = any(
+            is_level(on_plane, plane, below, across)
+            for below, was_floor in zip(supports, floor_of, strict=True)
+            if not was_floor
+        )
         # a table over the floor, where the floor was found first (docs/decisions.md#detect)
         raised = bool(supports) and is_raised(on_plane, plane, supports[0], across)
         raised = raised and len(on) * density >= RAISED_SHARE * supports[0].points
@@ -199,6 +205,7 @@ def find_supports(
         distance = distances(on_plane, frame.viewpoint)
         counted = int(round(len(on) * density))
         supports.append(Support(plane, counted, spread, float(np.median(distance)), band))
+        floor_of.append(level)
     return supports
 
 

@@ -259,3 +259,24 @@ def test_in_a_bin_the_parts_rims_on_its_floor_are_kept_and_the_tables_band_set_a
     table_plane = supports[0].plane
     in_table_band = np.abs(frame.points @ table_plane[:3] - table_plane[3]) < band
     assert not (keep & bare & in_table_band).any()
+
+
+def test_flat_parts_tops_level_over_a_bins_floor_are_not_another_floor(parts):
+    # four plates 13 mm thick lying side by side on a bin's floor, a box on one: their tops
+    # make a plane level with the floor, just above it, that carries the box, as a bin's
+    # floor over a table would; but a floor on a floor is parts lying on it
+    # (docs/decisions.md#flat-parts-tops-over-a-bins-floor)
+    bin_meshes, _ = raised_bin(parts)
+    plate = box((0.12, 0.06, 0.013), (0.0, 0.0, 0.0))
+    wall = 0.01
+    placed = [
+        (plate, *resting(plate, spin(0), x, y, wall))
+        for x, y in ((-0.065, -0.035), (0.065, -0.035), (-0.065, 0.035), (0.065, 0.035))
+    ]
+    placed.append((parts, *resting(parts, spin(30), -0.06, -0.035, wall + 0.013)))
+    shot = shoot(placed, [*table(), *bin_meshes], elevation_deg=60.0, distance=0.9)
+    frame, keep, supports = supports_of(shot, np.array([0.03, 0.07, 0.15]))
+    assert any(s.band is not None for s in supports)  # the bin's floor
+    for k in range(4):
+        mine = np.isin(frame.index, np.flatnonzero(shot.shows.ravel() == k))
+        assert keep[mine].mean() > 0.9, f"plate {k} was set aside as a floor"
