@@ -394,17 +394,14 @@ class Engine:
         surroundings: bool = True,
         noise: float = 0.0,
         rescued: int | None = None,
-        nudge: int = 0,
     ) -> Alignment:
         """Recognise and pose the object in ``points``; ``viewpoint`` is where the sensor was,
         in the cloud's frame, if known; below ``min_confidence`` the verdict is never "match".
         Without ``surroundings``, nothing is set aside (a frame's segment); ``noise``: the
         sensor's depth noise where the part lies, if known (``Query.tolerance``); ``rescued``:
-        how many more parts are tried where none fits well (default ``rescued_parts``);
-        ``nudge``: ICP iterations each screened hypothesis is moved by before its check (a
-        frame's segment: ``Search.nudged``)."""
+        how many more parts are tried where none fits well (default ``rescued_parts``)."""
         query = self.query(candidates, top_k, refine, hypotheses, viewpoint)
-        query.noise, query.rescued, query.nudge = noise, rescued, nudge
+        query.noise, query.rescued = noise, rescued
         scene = np.asarray(points)
         whole = len(scene)
         if whole > (most := self.settings.align_points):  # a sample answers as the whole would

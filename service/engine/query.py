@@ -43,7 +43,6 @@ class Query:
     clock: Stopwatch
     noise: float = 0.0  # the sensor's depth noise (sigma) where the part lies, if known
     rescued: int | None = None  # parts rescued where none fits well (None: the settings')
-    nudge: int = 0  # ICP iterations each screened hypothesis is nudged by before its check
 
     def tolerance(self, fraction: float, scale: float) -> float:
         """A distance tolerance of ``fraction`` of a part's ``scale``, but never under

@@ -70,7 +70,6 @@ from service.engine.tuning import (
     MIN_SEGMENT,
     NOISE_TOLERANCES,
     PIECE_CELLS,
-    SEGMENT_NUDGE,
     SEGMENT_POINTS,
     SEGMENT_RESCUED,
     SEVERAL,
@@ -848,9 +847,6 @@ class Scan:
             # a segment may be a view of a part the network ranks low (a duck seen from one
             # side): docs/decisions.md#more-parts-tried-for-a-segment
             "rescued": SEGMENT_RESCUED,
-            # a large part's view is posed from hypotheses some degrees off, which its tolerance
-            # reads low: docs/decisions.md#nudged-hypotheses
-            "nudge": SEGMENT_NUDGE,
         }
 
     @staticmethod

@@ -141,33 +141,10 @@ class Search:
             if len(hypotheses) > keep:
                 hypotheses = hypotheses.take(self.screen(entry, hypotheses)[:keep])
             if len(hypotheses):
-                fits += self.check(row, entry, self.nudged(entry, hypotheses))
+                fits += self.check(row, entry, hypotheses)
         self.clock.lap("verify")
         fits.sort(key=lambda f: -f.score)
         return fits
-
-    def nudged(self, entry: Entry, made: Hypotheses) -> Hypotheses:
-        """Each hypothesis moved by the query's ``nudge`` iterations of ICP on the cheap sample,
-        all together: a view's or the principal axes' pose lies some degrees off the right one
-        (the views are 20 degrees apart), and at the part's tolerance a large part's fit then
-        reads below a wrong pose's, which the check keeps (docs/decisions.md#nudged-hypotheses)."""
-        iterations = self.query.nudge
-        if not iterations:
-            return made
-        tolerance = self.tolerance(entry)
-        starts = [
-            Start.at_tolerance(
-                entry.surface, rotation, translation, tolerance, iterations, self.viewpoint
-            )
-            for rotation, translation in zip(made.rotations, made.translations, strict=True)
-        ]
-        moved = icp_many(self.cheap, starts)
-        return Hypotheses(
-            np.stack([rotation for rotation, _, _ in moved]),
-            np.stack([translation for _, translation, _ in moved]),
-            made.sources,
-            made.views,
-        )
 
     def refine(self, fits: list[Fit], plan: Plan) -> list[Fit]:
         """Step 7: the pass's best fits refined (``refine_best_first``). Returns each row's

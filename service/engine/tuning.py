@@ -178,10 +178,7 @@ SENSOR_NOISE = 0.0015  # the depth noise's share of the range where no support m
 SEED_SAMPLE = 2048  # seeds are spread over a sample of this many of a segment's points
 TEMPLATE_ICP_POINTS = 384  # a placed view is refined on this many of the points around it
 SEGMENT_POINTS = 4096  # the chain answers a segment from this many of its points at most
-SEGMENT_RESCUED = 8  # ... trying this many more parts where none fits (a lone cloud: 4) ...
-# ... each screened hypothesis nudged by this many ICP iterations before its check (a lone
-# cloud: none; docs/decisions.md#nudged-hypotheses)
-SEGMENT_NUDGE = 5
+SEGMENT_RESCUED = 8  # ... trying this many more parts where none fits (a lone cloud: 4)
 THROUGH_DOUBT = 0.1  # an instance the camera saw through more than this is doubted
 # ... and posed again at its part's near turn the camera sees through least, below this share
 TURNED_THROUGH = 0.5
