@@ -124,7 +124,7 @@ def find_supports(
     largest = largest_fitting(scales, extent(frame.points))
     links: tuple[np.ndarray, np.ndarray] | None = None  # the frame's pixel links, if needed
     floors: list[np.ndarray] = []  # the points of the bins' floors found
-    floor_of: list[bool] = []  # whether each support is a bin's floor
+    bases: list[Support] = []  # the supports a bin's floor may stand on: all but floors
     keep = np.ones(len(frame), dtype=bool)
     faces = np.zeros(len(frame), dtype=bool)  # on planes found to be parts' faces
     supports: list[Support] = []
@@ -151,11 +151,7 @@ def find_supports(
         # level, raised nor a wall may be parts' faces in one plane, however far it reaches
         # (docs/decisions.md#parts-faces-in-one-tilted-plane); one level with a bin's floor
         # is flat parts' tops on it (docs/decisions.md#flat-parts-tops-over-a-bins-floor)
-        level = any(
-            is_level(on_plane, plane, below, across)
-            for below, was_floor in zip(supports, floor_of, strict=True)
-            if not was_floor
-        )
+        level = any(is_level(on_plane, plane, below, across) for below in bases)
         # a table over the floor, where the floor was found first (docs/decisions.md#detect)
         raised = bool(supports) and is_raised(on_plane, plane, supports[0], across)
         raised = raised and len(on) * density >= RAISED_SHARE * supports[0].points
@@ -205,7 +201,7 @@ def find_supports(
         distance = distances(on_plane, frame.viewpoint)
         counted = int(round(len(on) * density))
         supports.append(Support(plane, counted, spread, float(np.median(distance)), band))
-        floor_of.append(level)
+        bases += [] if level else supports[-1:]
     return supports
 
 
