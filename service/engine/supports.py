@@ -201,7 +201,8 @@ def find_supports(
         distance = distances(on_plane, frame.viewpoint)
         counted = int(round(len(on) * density))
         supports.append(Support(plane, counted, spread, float(np.median(distance)), band))
-        bases += [] if level else supports[-1:]
+        if not level:  # a bin's floor stands on no other floor
+            bases.append(supports[-1])
     return supports
 
 
