@@ -47,6 +47,9 @@ from service.engine.supports import Noise, Support
 from service.engine.templates import likeliest, place_views
 from service.engine.tuning import (
     ALIKE_EXPLAINED,
+    ALIKE_FACE_POINTS,
+    ALIKE_FACE_RATIO,
+    ALIKE_FACE_SHARE,
     ALIKE_THROUGH,
     AROUND_DOUBT,
     AROUND_SAMPLE,
@@ -301,6 +304,15 @@ def evidence(
         "points": float(np.log10(max(claimed, 1))),
         "around": NOTHING_AROUND,
     }
+
+
+def unshared(one: Instance, other: Instance, points: np.ndarray, tolerance: float) -> int:
+    """How many of the frame's ``points`` that ``one`` claims lie farther than ``tolerance``
+    from ``other``'s surface at its pose."""
+    answer = other.answer
+    model = (points[one.claimed] - answer.translation) @ answer.rotation
+    distance, _ = surface_distance(other.entry.surface, model, "nearest")
+    return int(np.sum(distance > tolerance))
 
 
 def around(others: np.ndarray, claimed: np.ndarray, reach: float) -> tuple[int, float]:
@@ -913,6 +925,10 @@ class Scan:
         sensor's noise (``Query.tolerance``)."""
         return max(self.tolerance * entry.reference.scale, NOISE_TOLERANCES * sigma)
 
+    def claim_tolerance(self, entry: Entry, sigma: float) -> float:
+        """How near a part's surface here a point must lie to be claimed."""
+        return CLAIM_TOLERANCE * self.part_tolerance(entry, sigma)
+
     def claim(
         self, region: np.ndarray, answer: Alignment, sigma: float, again: bool = True
     ) -> Instance | None:
@@ -922,7 +938,7 @@ class Scan:
         if answer.verdict == "no_match" and answer.hypothesis == "none":
             return None
         entry = self.query.snapshot.entries[answer.label]
-        tolerance = CLAIM_TOLERANCE * self.part_tolerance(entry, sigma)
+        tolerance = self.claim_tolerance(entry, sigma)
         available = np.flatnonzero(self.free)
         free = self.frame.points[available]
         claimed, _ = claimable(available, free, entry, answer, tolerance)
@@ -1047,52 +1063,80 @@ class Scan:
         """An instance whose look-alikes fit alike (``doubt``), posed as each of them too, at
         the chain's pose for it: where one part explains ``ALIKE_EXPLAINED`` more of its
         region's points than each other, and the camera sees through it no more than
-        ``ALIKE_THROUGH`` more, the frame tells them apart (a part with a face the other
-        lacks: the chain, on its sample, weighs the points that face adds no more than the
-        coverage it costs the other). That part's instance, judged on the chain's confidence
-        undivided among them; else the instance as it was. In a region a crease split, an
-        instance of a part with look-alikes is doubted, whatever the chain said
-        (docs/decisions.md#touching-parts-split-at-a-crease)."""
-        if self.cut[claim.region].any():  # a crease may have cut off the face they differ by
-            answer = instance.answer
-            alike = self.query.snapshot.look_alikes.get(answer.label, ())
-            if alike and not answer.look_alikes:
-                answer.look_alikes = list(alike)
+        ``ALIKE_THROUGH`` more, or its claim alone shows a face the others lack
+        (``shows_face``), the frame tells them apart. That part's instance, judged on the
+        chain's confidence undivided among them; else the instance as it was. In a region a
+        crease split, an instance of a part with look-alikes is doubted whatever the chain
+        said, and told apart only by a face: the crease may have cut it off into a piece
+        beside the region, where a claim still reaches it and the region's shares do not
+        (docs/decisions.md#touching-parts-split-at-a-crease,
+        docs/decisions.md#a-face-one-look-alike-lacks)."""
+        answer = instance.answer
+        cut = bool(self.cut[claim.region].any())
+        unnamed: tuple[str, ...] = ()  # look-alikes the chain did not pose
+        if cut and not answer.look_alikes:
+            unnamed = self.query.snapshot.look_alikes.get(answer.label, ())
+            if unnamed:
+                answer.look_alikes = list(unnamed)
                 doubt(answer, share=False)
-            return instance
-        if not instance.answer.look_alikes or self.camera is None:
+        if not answer.look_alikes or self.camera is None:
             return instance
         alone = undoubted(chain)
         answers = [alone]
         for other in chain.alternatives:
-            if other.label in instance.answer.look_alikes:
-                answers.append(
-                    replace(
-                        alone,
-                        label=other.label,
-                        rotation=other.rotation,
-                        translation=other.translation,
-                        alternatives=[],  # its own other poses were not searched
-                        ambiguous=False,
-                    )
-                )
+            if other.label in answer.look_alikes:
+                answers.append(self.posed_as(alone, other.label, other.rotation, other.translation))
+        for label in unnamed:  # asked told that part alone, on the region's points
+            points = self.another_sample(self.frame.points[claim.region])
+            told = self.align(points, [label], **self.asking(sigma)[1])
+            if told.label == label and told.hypothesis != "none":
+                answers.append(self.posed_as(alone, label, told.rotation, told.translation))
         posed = []
-        for answer in answers:
-            entry = self.query.snapshot.entries[answer.label]
-            tolerance = CLAIM_TOLERANCE * self.part_tolerance(entry, sigma)
-            again = self.posed(answer, entry, replace(claim, tolerance=tolerance))
+        for each in answers:
+            entry = self.query.snapshot.entries[each.label]
+            tolerance = self.claim_tolerance(entry, sigma)
+            again = self.posed(each, entry, replace(claim, tolerance=tolerance))
             if again is None:  # one explains too little to be told from: the doubt stands
                 return instance
             posed.append(again)
         best = max(posed, key=lambda p: p.evidence["explained"])
-        for other in posed:
-            if other is best:
-                continue
-            more = best.evidence["explained"] - other.evidence["explained"]
-            through = best.evidence["through"] - other.evidence["through"]
-            if more < ALIKE_EXPLAINED or through > ALIKE_THROUGH:
-                return instance
-        return best
+        if not cut and all(self.explains_more(best, o) for o in posed if o is not best):
+            return best
+        faced = [p for p in posed if all(self.shows_face(p, o, sigma) for o in posed if o is not p)]
+        return faced[0] if len(faced) == 1 and len(posed) > 1 else instance
+
+    @staticmethod
+    def posed_as(
+        answer: Alignment, label: str, rotation: np.ndarray, translation: np.ndarray
+    ) -> Alignment:
+        """``answer`` as another part's, at that part's pose."""
+        return replace(
+            answer,
+            label=label,
+            rotation=rotation,
+            translation=translation,
+            alternatives=[],  # its own other poses were not searched
+            ambiguous=False,
+        )
+
+    @staticmethod
+    def explains_more(best: Instance, other: Instance) -> bool:
+        """Whether ``best`` explains ``ALIKE_EXPLAINED`` more of its region's points than
+        ``other``, seen through no more than ``ALIKE_THROUGH`` more."""
+        more = best.evidence["explained"] - other.evidence["explained"]
+        through = best.evidence["through"] - other.evidence["through"]
+        return more >= ALIKE_EXPLAINED and through <= ALIKE_THROUGH
+
+    def shows_face(self, one: Instance, other: Instance, sigma: float) -> bool:
+        """Whether ``one``'s claim holds a face ``other`` lacks: ``ALIKE_FACE_SHARE`` of its
+        points (``ALIKE_FACE_POINTS`` at least) lie beyond ``other``'s claim tolerance of its
+        surface at its pose, ``ALIKE_FACE_RATIO`` times as many as ``other``'s claim holds so
+        from ``one``'s. Counted on the frame's own points, which may lie beyond the region,
+        not on a rendered view's sample (docs/decisions.md#a-face-one-look-alike-lacks)."""
+        mine = unshared(one, other, self.frame.points, self.claim_tolerance(other.entry, sigma))
+        theirs = unshared(other, one, self.frame.points, self.claim_tolerance(one.entry, sigma))
+        least = max(ALIKE_FACE_POINTS, ALIKE_FACE_SHARE * len(one.claimed))
+        return mine >= least and mine >= ALIKE_FACE_RATIO * theirs
 
     @staticmethod
     def other_poses(instance: Instance, chain: Alignment) -> tuple[np.ndarray, np.ndarray]:
@@ -1262,7 +1306,7 @@ class Scan:
 
         def tolerance(instance: Instance) -> float:
             sigma = self.noise.at(instance.centre[None], frame.viewpoint)
-            return CLAIM_TOLERANCE * self.part_tolerance(instance.entry, sigma)
+            return self.claim_tolerance(instance.entry, sigma)
 
         owned = frame_indices(kept, instances, tolerance)
         detections = [

@@ -931,6 +931,21 @@ def test_look_alikes_the_frame_tells_apart_are_answered_as_the_part_shown(engine
         assert not any("look-alike" in reason for reason in instance.answer.reasons)
 
 
+def test_look_alikes_are_told_apart_by_a_face_in_a_piece_beside_the_region(engine):
+    # the stepped bar's step in a piece of its own (as a crease or a jump in depth may leave
+    # it): in the region searched both parts explain every point, but the stepped bar's claim
+    # also holds the step's free points beside it, which the bar's surface does not come near
+    # (docs/decisions.md#a-face-one-look-alike-lacks)
+    scan, region, sigma, said = look_alikes_shot(engine, "stepped")
+    on_step = step_of(scan, region, said)
+    assert on_step.mean() > 0.05  # the step is in view
+    for named in ("bar", "stepped"):
+        instance = scan.claim(region[~on_step], said(named), sigma, again=False)
+        assert instance is not None and instance.answer.label == "stepped"
+        assert not instance.answer.look_alikes
+        assert np.isin(region[on_step], instance.claimed).mean() > 0.8
+
+
 def test_look_alikes_the_frame_cannot_tell_apart_stay_doubted(engine):
     # the bar alone: the stepped bar explains its points as well, so nothing tells them apart
     scan, region, sigma, said = look_alikes_shot(engine, "bar")
@@ -942,10 +957,39 @@ def test_look_alikes_the_frame_cannot_tell_apart_stay_doubted(engine):
 
 def test_look_alikes_are_not_told_apart_in_a_region_a_crease_split(engine):
     # a crease may cut off the very face two look-alikes differ by: where the search split
-    # the region at one, the frame does not tell them apart, and the doubt stands
+    # the region at one and the step's points are out of reach (a neighbour took them), the
+    # frame does not tell them apart, and the doubt stands
     # (docs/decisions.md#touching-parts-split-at-a-crease)
     scan, region, sigma, said = look_alikes_shot(engine, "stepped")
+    on_step = step_of(scan, region, said)
     scan.cut[region] = True  # as ``Scan.creased`` marks the region it split
-    instance = scan.claim(region, said("bar"), sigma, again=False)
-    assert instance is not None and instance.answer.look_alikes == ["stepped"]
-    assert instance.answer.verdict != "match"
+    scan.free[region[on_step]] = False
+    for answer in (said("bar"), replace(said("bar"), look_alikes=[], alternatives=[])):
+        instance = scan.claim(region[~on_step], answer, sigma, again=False)
+        assert instance is not None and instance.answer.look_alikes == ["stepped"]
+        assert instance.answer.verdict != "match"
+
+
+def test_look_alikes_in_a_region_a_crease_split_are_told_apart_by_a_face_in_view(engine):
+    # the region split at a crease, the step's points still free: whichever part the chain
+    # named, alone or with its look-alike, the other is posed too (told it alone where the
+    # chain did not name it), and the stepped bar's claim shows the step the bar lacks
+    # (docs/decisions.md#a-face-one-look-alike-lacks)
+    scan, region, sigma, said = look_alikes_shot(engine, "stepped")
+    scan.cut[region] = True
+    points, asking = scan.frame.points[region], scan.asking(sigma)[1]
+    for named in ("bar", "stepped"):
+        alone = scan.align(points, [named], **asking)  # the chain's pose, no look-alike named
+        assert alone.label == named and not alone.look_alikes
+        for answer in (said(named), alone):
+            instance = scan.claim(region, answer, sigma, again=False)
+            assert instance is not None and instance.answer.label == "stepped"
+            assert not instance.answer.look_alikes
+
+
+def step_of(scan, region: np.ndarray, said) -> np.ndarray:
+    """Which of the stepped bar's ``region`` points lie on its step (the bar's top lies at
+    0.015, the step's at 0.021), at its true pose."""
+    truth = said("stepped")
+    model = (scan.frame.points[region] - truth.translation) @ truth.rotation
+    return model[:, 2] > 0.0165
