@@ -50,6 +50,7 @@ from service.engine.tuning import (
     ALIKE_FACE_POINTS,
     ALIKE_FACE_RATIO,
     ALIKE_FACE_SHARE,
+    ALIKE_FACE_THROUGH,
     ALIKE_THROUGH,
     AROUND_DOUBT,
     AROUND_SAMPLE,
@@ -1132,7 +1133,12 @@ class Scan:
         points (``ALIKE_FACE_POINTS`` at least) lie beyond ``other``'s claim tolerance of its
         surface at its pose, ``ALIKE_FACE_RATIO`` times as many as ``other``'s claim holds so
         from ``one``'s. Counted on the frame's own points, which may lie beyond the region,
-        not on a rendered view's sample (docs/decisions.md#a-face-one-look-alike-lacks)."""
+        not on a rendered view's sample; and only where the camera sees through ``other``'s
+        pose no more than ``ALIKE_FACE_THROUGH`` more than ``one``'s: a look-alike asked about
+        alone may be posed poorly, and any pose shows a face a poor one lacks
+        (docs/decisions.md#a-face-one-look-alike-lacks)."""
+        if other.evidence["through"] > one.evidence["through"] + ALIKE_FACE_THROUGH:
+            return False  # a pose the camera sees through is no pose to compare faces with
         mine = unshared(one, other, self.frame.points, self.claim_tolerance(other.entry, sigma))
         theirs = unshared(other, one, self.frame.points, self.claim_tolerance(one.entry, sigma))
         least = max(ALIKE_FACE_POINTS, ALIKE_FACE_SHARE * len(one.claimed))

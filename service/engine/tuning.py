@@ -189,6 +189,9 @@ ALIKE_EXPLAINED, ALIKE_THROUGH = 0.03, 0.05
 # pose does not come near, this many times as many as the other's such points: a face the other
 # lacks, in view (docs/decisions.md#a-face-one-look-alike-lacks)
 ALIKE_FACE_SHARE, ALIKE_FACE_POINTS, ALIKE_FACE_RATIO = 0.02, 10, 3.0
+# ... counted only against a pose of the other the camera sees through no more than this much
+# more (docs/decisions.md#a-face-one-look-alike-lacks)
+ALIKE_FACE_THROUGH = 0.3
 THROUGH_WEIGHT = 6.0  # a refined placed view: what the camera saw through counts this much
 DUPLICATE_GAP = 0.1  # two instances of a part this close (share of its scale) are one
 FRAGMENT = 0.3  # a region narrower than this share of the smallest part's scale is a fragment

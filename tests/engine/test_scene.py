@@ -987,6 +987,28 @@ def test_look_alikes_in_a_region_a_crease_split_are_told_apart_by_a_face_in_view
             assert not instance.answer.look_alikes
 
 
+def test_a_face_is_not_counted_against_a_pose_the_camera_sees_through(engine):
+    # a look-alike asked about alone may be posed poorly, and any pose shows a face a poor one
+    # lacks: the stepped bar shows its step against the bar posed on the points, but not
+    # against the bar moved 2 cm towards the camera, which the camera sees through
+    # (docs/decisions.md#a-face-one-look-alike-lacks)
+    scan, region, sigma, said = look_alikes_shot(engine, "stepped")
+    stepped, bar = (
+        scan.claim(region, replace(said(name), look_alikes=[], alternatives=[]), sigma, False)
+        for name in ("stepped", "bar")
+    )
+    assert scan.shows_face(stepped, bar, sigma)
+    answer = replace(bar.answer)
+    answer.translation = answer.translation * (1 - 0.02 / np.linalg.norm(answer.translation))
+    moved = replace(bar, answer=answer, evidence=dict(bar.evidence))
+    tolerance = scan.claim_tolerance(bar.entry, sigma)
+    poses = answer.rotation[None], answer.translation[None]
+    _, through = seen_through(bar.entry, *poses, scan.frame.viewpoint, scan.camera, tolerance)
+    moved.evidence["through"] = float(through[0])
+    assert moved.evidence["through"] > stepped.evidence["through"] + 0.5
+    assert not scan.shows_face(stepped, moved, sigma)
+
+
 def step_of(scan, region: np.ndarray, said) -> np.ndarray:
     """Which of the stepped bar's ``region`` points lie on its step (the bar's top lies at
     0.015, the step's at 0.021), at its true pose."""
