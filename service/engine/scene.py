@@ -309,11 +309,12 @@ def evidence(
 
 def unshared(one: Instance, other: Instance, points: np.ndarray, tolerance: float) -> int:
     """How many of the frame's ``points`` that ``one`` claims lie farther than ``tolerance``
-    from ``other``'s surface at its pose."""
+    from ``other``'s surface at its pose (``near_surface``)."""
     answer = other.answer
-    model = (points[one.claimed] - answer.translation) @ answer.rotation
-    distance, _ = surface_distance(other.entry.surface, model, "nearest")
-    return int(np.sum(distance > tolerance))
+    near, _ = near_surface(
+        points[one.claimed], other.entry, answer.rotation, answer.translation, tolerance
+    )
+    return len(one.claimed) - len(near)
 
 
 def around(others: np.ndarray, claimed: np.ndarray, reach: float) -> tuple[int, float]:
