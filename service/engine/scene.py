@@ -77,6 +77,7 @@ from service.engine.tuning import (
     SEGMENT_POINTS,
     SEGMENT_RESCUED,
     SEVERAL,
+    STRAYS,
     TEMPLATE_FIT,
     TEMPLATE_PARTS,
     TEMPLATE_POOL,
@@ -765,6 +766,7 @@ class Scan:
         placed over the region, and the chain asked about the points the best explains, then
         the next best (``TEMPLATES_ASKED``; docs/decisions.md#a-supports-rim-given-back). None
         if neither explains enough."""
+        region = self.bulk(region)
         points = self.frame.points[region]
         sigma = self.noise.at(points, self.frame.viewpoint)
         answer = self.answer_for(points, sigma)
@@ -798,6 +800,22 @@ class Scan:
                     return found
         return None
 
+    def bulk(self, region: np.ndarray) -> np.ndarray:
+        """``region`` without its strays: the groups of cells ``PIECE_CELLS`` spacings wide
+        too small to be a segment that lie beyond the rest's radius (a flying pixel, what a
+        neighbour's claim left), where they are ``STRAYS`` of it at most. The chain scales a
+        cloud by its radius, and one such point may double it
+        (docs/decisions.md#a-regions-strays)."""
+        points = self.frame.points[region]
+        group = cell_groups(points, PIECE_CELLS * self.spacing)
+        big = np.bincount(group)[group] >= MIN_SEGMENT
+        if big.all() or big.sum() < (1 - STRAYS) * len(region):
+            return region
+        centre = points[big].mean(axis=0)
+        within = squared_distances(points, centre) <= radius(points[big], centre) ** 2
+        keep = big | within
+        return region if keep.all() else region[keep]
+
     def may_hold_several(self, points: np.ndarray, answer: Alignment) -> bool:
         """Whether a region the chain found nothing in may hold several parts: the chain's
         best part explains little of it (``TEMPLATE_FIT``), or it is wider than that part."""
@@ -821,7 +839,7 @@ class Scan:
         if self.submit is None:
             return
         for region in regions:
-            region = region[self.free[region]]
+            region = self.bulk(region[self.free[region]])
             if len(region) <= SEGMENT_POINTS and self.worth_searching(region):
                 points = self.frame.points[region]
                 self.send(points, self.noise.at(points, self.frame.viewpoint))

@@ -147,6 +147,9 @@ MATCH_POINTS = 150  # ... and a "match" this many (fewer were right 8 times in 2
 CHAIN_AGREES = 0.5  # ... and the chain's own confidence for its points at least this
 MAX_TRIES = 6  # searches of a segment and its pieces (docs/decisions.md#a-segments-searches-six)
 PIECE_CELLS = 4  # what is left of a segment is searched in pieces: cells this many spacings wide
+# a region's groups of such cells smaller than a segment, beyond its bulk's radius, are asked
+# without, where they hold this share of it at most (docs/decisions.md#a-regions-strays)
+STRAYS = 0.1
 SEVERAL = 2  # a part matched this often in a frame is looked for again, told it alone ...
 HELD_FROM = 0.7  # ... or refused this sure (docs/decisions.md#several-likely-instances)
 CLAIM_TOLERANCE = 1.5  # an instance claims the points within this many tolerances of it

@@ -422,6 +422,30 @@ def test_what_is_left_of_a_segment_is_searched_piece_by_piece(box_and_cube):
         assert cube_share(shot, found) > 0.95
 
 
+def test_a_regions_few_points_apart_from_its_bulk_are_left_out_of_its_ask(engine):
+    # two boxes 16 cm apart: a region of the first box's segment and three points of the
+    # second (a flying pixel, or a neighbour's leftovers, that the region holds) is asked about
+    # without the three, which would double the radius the chain scales a cloud by; a region
+    # of the two boxes' segments is asked whole (docs/decisions.md#a-regions-strays)
+    mesh = trimesh.creation.box((0.08, 0.06, 0.04))
+    placed = [(mesh, *resting(mesh, spin(25 + 40 * k), 0.16 * k - 0.08, 0.0)) for k in range(2)]
+    calls = counting(engine)
+    try:
+        scan, labels, _ = scan_of(engine, shoot(placed, table()))
+        a, b = (np.flatnonzero(labels == s) for s in np.argsort(-np.bincount(labels))[:2])
+        strays = b[:: len(b) // 3][:3]
+        np.testing.assert_array_equal(scan.bulk(np.concatenate([a, strays])), a)
+        np.testing.assert_array_equal(scan.bulk(a), a)
+        both = np.concatenate([a, b])
+        np.testing.assert_array_equal(scan.bulk(both), both)
+        found = scan.instance(np.concatenate([a, strays]))
+    finally:
+        del engine.align
+    assert found is not None and found.answer.label == "box"
+    asked = np.concatenate(calls)
+    assert cKDTree(asked).query(scan.frame.points[strays])[0].min() > 0.01  # none asked about
+
+
 def test_asks_sent_ahead_to_another_process_answer_as_those_made_here(box_and_cube):
     # ``submit`` runs the chain elsewhere (here a thread of the real engine; the service's
     # worker processes): the segments' and their pieces' first asks are sent there at once,
