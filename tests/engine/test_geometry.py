@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -174,6 +175,24 @@ def test_cell_groups_join_what_lies_within_a_cell_and_part_what_lies_far_apart()
     assert len(set(labels[:25])) == len(set(labels[25:])) == 1
     assert labels[0] != labels[25]
     assert len(set(cell_groups(line, 0.001))) == 25  # 4 mm apart: beyond 2 sqrt(3) mm cells
+
+
+def test_cell_groups_are_the_occupied_cells_joined_to_their_26_neighbours():
+    # a sparse cloud, unequal along its axes: each group is one of the occupied cells'
+    # components on the dense grid (scipy's labelling with the 3 x 3 x 3 neighbourhood), so
+    # one number a cell stands for its three indices whatever their spans
+    rng = np.random.default_rng(3)
+    points = rng.uniform(0, 1, (400, 3)) * [0.3, 0.05, 0.12] + [-1.0, 2.0, 0.5]
+    cell = 0.01
+    labels = cell_groups(points, cell)
+    keys = np.floor((points - points.min(axis=0)) / cell).astype(int)
+    occupied = np.zeros(keys.max(axis=0) + 1, dtype=bool)
+    occupied[tuple(keys.T)] = True
+    components, count = ndimage.label(occupied, structure=np.ones((3, 3, 3)))
+    expected = components[tuple(keys.T)]
+    assert 1 < count < len(points)
+    pairs = set(zip(labels.tolist(), expected.tolist(), strict=True))
+    assert len(pairs) == len(set(labels.tolist())) == count  # the same partition
 
 
 def test_a_clouds_radius_is_at_least_half_its_strided_span():
