@@ -714,10 +714,15 @@ class Scan:
         beyond it (docs/decisions.md#detect)."""
         if len(region) < MIN_SEGMENT:
             return []
-        group = cell_groups(self.frame.points[region], PIECE_CELLS * self.spacing)
+        group = self.groups_of(self.frame.points[region])
         sizes = np.bincount(group)
         order = np.argsort(-sizes, kind="stable")
         return [region[group == g] for g in order if sizes[g] >= MIN_SEGMENT]
+
+    def groups_of(self, points: np.ndarray) -> np.ndarray:
+        """(N,) a group label per point: ``cell_groups`` of cells ``PIECE_CELLS`` spacings
+        wide, what ``pieces`` and ``bulk`` part a region by."""
+        return cell_groups(points, PIECE_CELLS * self.spacing)
 
     def finer(self, region: np.ndarray) -> list[np.ndarray]:
         """A region the search found nothing in (a segment, or what is left of one), split at
@@ -801,13 +806,12 @@ class Scan:
         return None
 
     def bulk(self, region: np.ndarray) -> np.ndarray:
-        """``region`` without its strays: the groups of cells ``PIECE_CELLS`` spacings wide
-        too small to be a segment that lie beyond the rest's radius (a flying pixel, what a
-        neighbour's claim left), where they are ``STRAYS`` of it at most. The chain scales a
-        cloud by its radius, and one such point may double it
-        (docs/decisions.md#a-regions-strays)."""
+        """``region`` without its strays: the groups (``groups_of``) too small to be a segment
+        that lie beyond the rest's radius (a flying pixel, what a neighbour's claim left),
+        where they are ``STRAYS`` of it at most. The chain scales a cloud by its radius, and
+        one such point may double it (docs/decisions.md#a-regions-strays)."""
         points = self.frame.points[region]
-        group = cell_groups(points, PIECE_CELLS * self.spacing)
+        group = self.groups_of(points)
         big = np.bincount(group)[group] >= MIN_SEGMENT
         if big.all() or big.sum() < (1 - STRAYS) * len(region):
             return region
@@ -1106,8 +1110,8 @@ class Scan:
         for other in chain.alternatives:
             if other.label in answer.look_alikes:
                 answers.append(self.posed_as(alone, other.label, other.rotation, other.translation))
+        points = self.another_sample(self.frame.points[claim.region]) if unnamed else None
         for label in unnamed:  # asked told that part alone, on the region's points
-            points = self.another_sample(self.frame.points[claim.region])
             told = self.align(points, [label], **self.asking(sigma)[1])
             if told.label == label and told.hypothesis != "none":
                 answers.append(self.posed_as(alone, label, told.rotation, told.translation))
